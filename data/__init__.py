@@ -1,0 +1,1 @@
+"""Package data for cpdetect: real background photographs (see backgrounds/MANIFEST.tsv)."""
