@@ -137,10 +137,6 @@ def read_image(path: str | os.PathLike, gray: bool = False, reduce: int = 1) -> 
     p = Path(path)
     if reduce not in (1, 2, 4, 8):
         raise ValueError(f"reduce must be 1, 2, 4 or 8, got {reduce}")
-    info_fmt = None
-    if reduce != 1 or not gray:
-        pass
-    # Decode with ANYDEPTH so 16-bit files are seen as such, except for reduced JPEG decoding.
     try:
         data = np.fromfile(str(p), dtype=np.uint8)
     except FileNotFoundError:
@@ -156,12 +152,20 @@ def read_image(path: str | os.PathLike, gray: bool = False, reduce: int = 1) -> 
         raise InputError("not an image (unrecognised format)", p)
     if info_fmt == "jpeg" and data[-2:].tobytes() != b"\xff\xd9":
         raise InputError("truncated JPEG (no end-of-image marker)", p)
+    wh = None
+    if info_fmt == "jpeg":
+        wh = _jpeg_size(data[:65536].tobytes()) or _jpeg_size(data.tobytes())
+    elif info_fmt == "png" and data.size >= 24:
+        wh = (int.from_bytes(data[16:20].tobytes(), "big"), int.from_bytes(data[20:24].tobytes(), "big"))
+    if wh is not None and wh[0] * wh[1] > MAX_PIXELS:
+        raise InputError(f"image too large ({wh[0]}x{wh[1]} > {MAX_PIXELS // 1_000_000} MP)", p)
     if info_fmt == "jpeg":
         flag_name = (_REDUCED_GRAY if gray else _REDUCED_COLOR)[reduce]
         img = cv2.imdecode(data, getattr(cv2, flag_name))
         if img is None:
             raise InputError("corrupt JPEG (cannot decode)", p)
         return img
+    # UNCHANGED keeps 16-bit depth and alpha so they can be converted deliberately below.
     img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     if img is None:
         raise InputError(f"corrupt {info_fmt.upper()} (cannot decode)", p)

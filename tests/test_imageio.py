@@ -1,0 +1,91 @@
+"""Image reading: every bad file is a one-line InputError naming it; odd but valid images are converted."""
+import cv2
+import numpy as np
+import pytest
+
+from cpdetect.errors import InputError
+from cpdetect.imageio import list_images, probe_image, read_image
+
+
+@pytest.fixture()
+def jpeg(tmp_path):
+    img = np.zeros((60, 80, 3), np.uint8)
+    img[10:30, 20:50] = (10, 200, 30)
+    p = tmp_path / "a.jpg"
+    cv2.imwrite(str(p), img)
+    return p
+
+
+def test_reads_colour_and_gray(jpeg):
+    bgr = read_image(jpeg)
+    gray = read_image(jpeg, gray=True)
+    assert bgr.shape == (60, 80, 3) and bgr.dtype == np.uint8
+    assert gray.shape == (60, 80)
+    info = probe_image(jpeg)
+    assert (info.width, info.height, info.format) == (80, 60, "jpeg")
+
+
+def test_reduced_decode_halves_the_size(jpeg):
+    assert read_image(jpeg, gray=True, reduce=2).shape == (30, 40)
+    assert read_image(jpeg, gray=True, reduce=8).shape == (8, 10)
+
+
+@pytest.mark.parametrize("case, message", [
+    ("zero", "empty"), ("truncated", "truncated"), ("text", "not an image"), ("missing", "not found"),
+])
+def test_bad_files_name_the_file(tmp_path, jpeg, case, message):
+    p = tmp_path / f"{case}.jpg"
+    if case == "zero":
+        p.write_bytes(b"")
+    elif case == "truncated":
+        p.write_bytes(jpeg.read_bytes()[:200])
+    elif case == "text":
+        p.write_text("hello")
+    for fn in (read_image, probe_image):
+        with pytest.raises(InputError) as e:
+            fn(p)
+        assert message in str(e.value) and str(p) in str(e.value)
+        assert "\n" not in str(e.value)
+
+
+def test_png_with_jpg_name_is_read_by_content(tmp_path):
+    p = tmp_path / "really_png.jpg"
+    ok, buf = cv2.imencode(".png", np.full((5, 7), 99, np.uint8))
+    p.write_bytes(buf.tobytes())
+    assert read_image(p, gray=True).shape == (5, 7)
+    assert probe_image(p).format == "png"
+
+
+def test_16bit_and_alpha_are_converted(tmp_path):
+    p16 = tmp_path / "deep.png"
+    cv2.imwrite(str(p16), np.full((4, 6), 40000, np.uint16))
+    g = read_image(p16, gray=True)
+    assert g.dtype == np.uint8 and int(g[0, 0]) == 40000 >> 8
+    pa = tmp_path / "alpha.png"
+    cv2.imwrite(str(pa), np.full((4, 6, 4), 77, np.uint8))
+    assert read_image(pa).shape == (4, 6, 3)
+
+
+def test_huge_image_is_refused_before_decoding(tmp_path):
+    # A valid PNG header announcing 30000 x 30000 pixels; the body is never decoded.
+    import struct
+    import zlib
+    ihdr = struct.pack(">IIBBBBB", 30000, 30000, 8, 0, 0, 0, 0)
+    chunk = b"IHDR" + ihdr
+    data = b"\x89PNG\r\n\x1a\n" + struct.pack(">I", len(ihdr)) + chunk + struct.pack(">I", zlib.crc32(chunk))
+    p = tmp_path / "huge.png"
+    p.write_bytes(data)
+    for fn in (probe_image, read_image):
+        with pytest.raises(InputError, match="too large"):
+            fn(p)
+
+
+def test_list_images(tmp_path, jpeg):
+    (tmp_path / "notes.txt").write_text("x")
+    assert list_images(tmp_path) == [jpeg]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(InputError, match="no images"):
+        list_images(empty)
+    with pytest.raises(InputError, match="not found"):
+        list_images(tmp_path / "absent")
