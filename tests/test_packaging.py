@@ -1,0 +1,48 @@
+"""`pip install .` into a clean environment, run from another folder, works like the checkout.
+
+The wheel is built from the checkout and installed with --no-deps into a fresh venv that borrows the
+already-installed third-party dependencies (through a .pth path line, which does not run the checkout's
+editable-install hooks), so only cpdetect's own files come from the wheel.
+"""
+import subprocess
+import sys
+import sysconfig
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def installed(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("pkg")
+    wheels = tmp / "wheels"
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
+                    "-w", str(wheels), str(ROOT)], check=True, capture_output=True)
+    venv = tmp / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
+    py = venv / "bin" / "python"
+    site = subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                          check=True, capture_output=True, text=True).stdout.strip()
+    Path(site, "borrowed_deps.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
+    wheel = next(wheels.glob("cpdetect-*.whl"))
+    subprocess.run([sys.executable, "-m", "pip", "--python", str(py), "install", "--no-deps", "-q", str(wheel)],
+                   check=True, capture_output=True)
+    elsewhere = tmp / "elsewhere"
+    elsewhere.mkdir()
+    return venv, elsewhere
+
+
+def test_installed_package_has_its_data_and_runs_from_elsewhere(installed):
+    venv, elsewhere = installed
+    code = ("import importlib.resources as r, cpdetect, pathlib; "
+            "p = r.files('cpdetect.data') / 'backgrounds'; "
+            "n = sum(1 for f in p.iterdir() if f.name.endswith('.jpg')); "
+            "assert (p / 'MANIFEST.tsv').is_file(); "
+            "assert 'site-packages' in cpdetect.__file__, cpdetect.__file__; print(n)")
+    out = subprocess.run([str(venv / "bin" / "python"), "-c", code], cwd=elsewhere, check=True,
+                         capture_output=True, text=True).stdout
+    assert int(out) >= 40
+    res = subprocess.run([str(venv / "bin" / "cpdetect"), "--help"], cwd=elsewhere, capture_output=True, text=True)
+    assert res.returncode == 0 and "COMMAND" in res.stdout
