@@ -1,0 +1,98 @@
+"""Multi-view triangulation: exact on exact data, noise-consistent RMS and covariance, robust to outliers."""
+import numpy as np
+import pytest
+
+from geometry.camera import Camera
+from geometry.transforms import Rigid3
+from geometry.triangulate import Observation, dlt, triangulate
+
+CAM = Camera(1200, 900, 1000.0, 1000.0, 599.5, 449.5)
+CAM_DIST = Camera(1200, 900, 1000.0, 1010.0, 610.0, 440.0, dist=(-0.12, 0.05, 0.001, -0.0005, 0.0))
+X_TRUE = np.array([0.3, -0.2, 0.1])
+
+
+def look_at(center, target, up=(0.0, 0.0, 1.0)) -> Rigid3:
+    z = np.asarray(target, float) - center
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    return Rigid3(R, -R @ np.asarray(center, float))
+
+
+def ring(n, radius=10.0, height=6.0):
+    poses = []
+    for a in np.linspace(0, 2 * np.pi, n, endpoint=False):
+        c = np.array([radius * np.cos(a), radius * np.sin(a), height])
+        poses.append(look_at(c, np.zeros(3)))
+    return poses
+
+
+def observe(X, poses, cam, sigma=0.0, rng=None):
+    obs = []
+    for k, pose in enumerate(poses):
+        uv = cam.project(pose(X[None]))[0][0]
+        if sigma > 0:
+            uv = uv + rng.normal(0, sigma, 2)
+        obs.append(Observation(cam, pose, uv, max(sigma, 0.3), f"im{k}"))
+    return obs
+
+
+@pytest.mark.parametrize("cam", [CAM, CAM_DIST])
+def test_exact_observations_give_the_exact_point(cam):
+    obs = observe(X_TRUE, ring(6), cam)
+    np.testing.assert_allclose(dlt(obs), X_TRUE, atol=1e-9)
+    res = triangulate(obs)
+    assert res.ok and res.inliers.all()
+    np.testing.assert_allclose(res.point, X_TRUE, atol=1e-8)
+    assert res.rms_px < 1e-5
+
+
+def test_noisy_rms_and_error_match_the_injected_noise():
+    rng = np.random.default_rng(7)
+    sigma = 0.5
+    errs, rms, maha = [], [], []
+    for _ in range(120):
+        obs = observe(X_TRUE, ring(12), CAM, sigma, rng)
+        res = triangulate(obs, loss="huber")
+        assert res.ok and res.inliers.all()
+        d = res.point - X_TRUE
+        errs.append(np.linalg.norm(d))
+        rms.append(res.rms_px)
+        maha.append(d @ np.linalg.solve(res.covariance, d))
+    # residual vector length RMS ~ sigma * sqrt(2 (2n - 3) / (2n)) = 0.68 px for n = 12
+    assert 0.55 < np.mean(rms) < 0.8
+    # 1-sigma ground error at ~11.7 units and f = 1000: about 0.5 * 11.7 / 1000 / sqrt(12 / 2) = 2.4e-3
+    assert 1e-3 < np.sqrt(np.mean(np.square(errs))) < 5e-3
+    # the covariance is calibrated: E[d^T C^-1 d] = 3
+    assert 2.4 < np.mean(maha) < 4.5  # s0^2 is estimated: 3 * F(3, 21) has mean 3.3
+
+
+@pytest.mark.parametrize("loss", ["huber", "cauchy"])
+def test_gross_outliers_are_flagged_and_do_not_pull_the_point(loss):
+    rng = np.random.default_rng(1)
+    obs = observe(X_TRUE, ring(10), CAM, 0.3, rng)
+    bad = [2, 7]
+    for k in bad:
+        o = obs[k]
+        obs[k] = Observation(o.camera, o.cam_from_world, o.uv + np.array([40.0, -25.0]), o.sigma_px, o.image)
+    res = triangulate(obs, loss=loss)
+    assert res.ok
+    assert res.inliers.tolist() == [k not in bad for k in range(10)]
+    assert np.linalg.norm(res.point - X_TRUE) < 3e-3
+    assert 0.1 < res.rms_px < 0.8
+    assert np.linalg.norm(res.residuals_px[bad], axis=1).min() > 20
+
+
+def test_degenerate_inputs_fail_with_a_reason():
+    single = observe(X_TRUE, ring(1), CAM)
+    res = triangulate(single)
+    assert not res and "fewer than two" in res.reason
+    # two views from (almost) the same place: no baseline
+    p = look_at(np.array([10.0, 0, 6]), np.zeros(3))
+    q = look_at(np.array([10.0, 0.001, 6]), np.zeros(3))
+    res = triangulate(observe(X_TRUE, [p, q], CAM))
+    assert not res.ok and res.reason
+    with pytest.raises(ValueError):
+        dlt(single)
