@@ -58,6 +58,25 @@ class TriangulationResult:
         return self.ok
 
 
+def project_batch(X: np.ndarray, R: np.ndarray, t: np.ndarray, f: np.ndarray, c: np.ndarray,
+                  dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Project k points with k poses and k cameras at once (the model of :class:`Camera`).
+
+    X (k, 3) model frame; R (k, 3, 3), t (k, 3) cam_from_world; f, c (k, 2) focal lengths and principal
+    points in pixels; dist (k, 5) k1, k2, p1, p2, k3. Returns pixels (k, 2) and camera depths z (k,).
+    """
+    P = np.einsum("kij,kj->ki", R, X) + t
+    z = P[:, 2]
+    xn = P[:, :2] / np.where(np.abs(z) > 1e-12, z, 1e-12)[:, None]
+    k1, k2, p1, p2, k3 = np.asarray(dist, float).T
+    x, y = xn[:, 0], xn[:, 1]
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return np.stack([xd, yd], 1) * f + c, z
+
+
 class _Stack:
     """Observations as arrays for vectorised projection."""
 
@@ -77,16 +96,7 @@ class _Stack:
 
     def project(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixels (k, 2) of X in every view and the camera depths (k,)."""
-        P = np.einsum("kij,j->ki", self.R, X) + self.t
-        z = P[:, 2]
-        xn = P[:, :2] / np.where(np.abs(z) > 1e-12, z, 1e-12)[:, None]
-        k1, k2, p1, p2, k3 = self.dist.T
-        x, y = xn[:, 0], xn[:, 1]
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        return np.stack([xd, yd], 1) * self.f + self.c, z
+        return project_batch(np.broadcast_to(X, self.t.shape), self.R, self.t, self.f, self.c, self.dist)
 
     def residuals(self, X: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
         uv, _ = self.project(X)
