@@ -1,0 +1,425 @@
+"""Sub-pixel refinement of a marker's centre (its central X-corner) in one image.
+
+Pure functions of an image and an approximate centre. The 3D back end reuses them: it projects a
+control point into every image where it is visible and calls :func:`refine_center` on the full-
+resolution image around the projected point.
+
+Pixel convention: OpenCV's (the centre of the top-left pixel is (0, 0)); x right, y down.
+
+Methods (``method=``):
+
+``"hough"``
+    The seed paper's method (section 4.3): Canny edges in a patch around the seed, Hough transform
+    for straight lines (normal form x cos(theta) + y sin(theta) = rho), the line with most votes l1 and
+    the best second line l2 at 45..135 degrees to it, intersection p = l1 x l2 by the cross product
+    of the homogeneous lines. Each Hough line is then re-fitted by least squares to the gradient-
+    weighted pixels next to it, which makes the intersection sub-pixel.
+``"saddle"``
+    A weighted least-squares quadratic surface I ~ a dx^2 + b dx dy + c dy^2 + d dx + e dy + f on the
+    image smoothed at a scale adapted to the marker, with Gaussian weights centred at the current
+    estimate; the saddle point of the surface is the new estimate; iterated to convergence.
+``"symmetry"``
+    Point-symmetry fit: two straight lines crossing at p split the plane into four wedges that are
+    mapped onto each other by the point reflection about p, so a 2x2 marker (dark, bright, dark,
+    bright) seen under any perspective and any isotropic blur satisfies I(p + d) = I(p - d) inside
+    the pattern. Gauss-Newton minimises sum_d w(d) (I(p + d) - I(p - d) - 2 g.d)^2 over p (and a
+    linear illumination gradient g), with d on a disc (or, given a perspective hint, an ellipse)
+    adapted to the marker size. Seeded by ``"saddle"``.
+``"auto"`` (default)
+    ``"symmetry"`` seeded by ``"saddle"``; when it fails, whichever of ``"saddle"`` and ``"hough"``
+    succeeded with the smaller uncertainty.
+
+The window is always derived from the marker's apparent radius (``radius_px``; a fraction of it,
+clamped), never fixed: a fixed window either straddles the marker boundary on small markers or
+wastes signal on large ones.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+METHODS = ("auto", "symmetry", "saddle", "hough")
+
+
+@dataclass(frozen=True)
+class RefineResult:
+    """Outcome of one refinement.
+
+    x, y: refined centre (pixels, OpenCV convention); the seed when ``ok`` is False.
+    sigma_px: 1-sigma uncertainty of the position (pixels), from the fit residuals and geometry.
+    method: the method that produced (x, y). ok: whether it succeeded; reason: why not (or "").
+    """
+
+    x: float
+    y: float
+    sigma_px: float
+    method: str
+    ok: bool
+    reason: str = ""
+
+
+def _fail(x0: float, y0: float, method: str, reason: str, sigma: float = 1.0) -> RefineResult:
+    return RefineResult(float(x0), float(y0), float(sigma), method, False, reason)
+
+
+def default_window(radius_px: float) -> float:
+    """Half-size (pixels) of the fitting window for a marker of apparent radius ``radius_px``.
+
+    About half the radius keeps the window inside the pattern down to ~60 degrees of tilt; clamped to
+    [2.5, 40] px (larger windows add little accuracy and cost time).
+    """
+    return float(np.clip(0.5 * radius_px, 2.5, 40.0))
+
+
+class _Patch:
+    """A float32 copy of the image around a point, with its origin (x of column 0, y of row 0)."""
+
+    def __init__(self, gray: np.ndarray, cx: float, cy: float, half: int):
+        h, w = gray.shape[:2]
+        ix, iy = int(round(cx)), int(round(cy))
+        self.x0, self.y0 = max(ix - half, 0), max(iy - half, 0)
+        x1, y1 = min(ix + half + 1, w), min(iy + half + 1, h)
+        self.data = np.asarray(gray[self.y0:y1, self.x0:x1], dtype=np.float32)
+        self.valid = self.data.shape[0] >= 5 and self.data.shape[1] >= 5
+
+
+def _check_inputs(gray: np.ndarray, x0: float, y0: float, radius_px: float) -> np.ndarray:
+    a = np.asarray(gray)
+    if a.ndim != 2:
+        raise ValueError(f"refine_center expects a 2-D gray image, got shape {a.shape}")
+    if not (np.isfinite(x0) and np.isfinite(y0)):
+        raise ValueError("seed position must be finite")
+    if not (np.isfinite(radius_px) and radius_px > 0):
+        raise ValueError("radius_px must be positive")
+    return a
+
+
+# --------------------------------------------------------------------------------------------------
+# quadratic saddle fit
+
+
+def refine_saddle(gray: np.ndarray, x0: float, y0: float, radius_px: float, window_px: float | None = None,
+                  max_shift_px: float | None = None, max_iter: int = 12) -> RefineResult:
+    """Saddle point of a weighted quadratic surface fitted to the smoothed image (see module doc)."""
+    import cv2
+
+    gray = _check_inputs(gray, x0, y0, radius_px)
+    w = float(window_px) if window_px is not None else default_window(radius_px)
+    max_shift = float(max_shift_px) if max_shift_px is not None else max(2.0, 0.35 * radius_px)
+    # the quadratic model of an X-corner holds within about one blur scale of its centre
+    sb = max(0.8, 0.5 * w)
+    half = int(math.ceil(w + max_shift + 3 * sb + 2))
+    patch = _Patch(gray, x0, y0, half)
+    if not patch.valid:
+        return _fail(x0, y0, "saddle", "too close to the image border")
+    img = cv2.GaussianBlur(patch.data, (0, 0), sb, borderType=cv2.BORDER_REFLECT)
+    hh, ww = img.shape
+    X, Y = np.meshgrid(np.arange(ww, dtype=np.float64) + patch.x0, np.arange(hh, dtype=np.float64) + patch.y0)
+    px, py = float(x0), float(y0)
+    sw = max(0.8, 0.5 * w)
+    sol = None
+    for _ in range(max_iter):
+        dx, dy = X - px, Y - py
+        r2 = dx * dx + dy * dy
+        m = r2 <= w * w
+        if m.sum() < 12:
+            return _fail(x0, y0, "saddle", "window too small")
+        wt = np.exp(-0.5 * r2[m] / (sw * sw))
+        a, b = dx[m], dy[m]
+        A = np.stack([a * a, a * b, b * b, a, b, np.ones_like(a)], axis=1)
+        sq = np.sqrt(wt)
+        sol, *_ = np.linalg.lstsq(A * sq[:, None], img[m] * sq, rcond=None)
+        H = np.array([[2 * sol[0], sol[1]], [sol[1], 2 * sol[2]]])
+        if np.linalg.det(H) >= 0:
+            return _fail(x0, y0, "saddle", "no saddle point (not an X-corner)")
+        step = -np.linalg.solve(H, sol[3:5])
+        if np.hypot(*step) > w:
+            step *= w / np.hypot(*step)
+        px, py = px + step[0], py + step[1]
+        if np.hypot(px - x0, py - y0) > max_shift:
+            return _fail(x0, y0, "saddle", "moved too far from the seed")
+        if np.hypot(*step) < 1e-4:
+            break
+    # uncertainty: residual noise propagated through the saddle equations (gradient of the surface)
+    dx, dy = X - px, Y - py
+    r2 = dx * dx + dy * dy
+    m = r2 <= w * w
+    wt = np.exp(-0.5 * r2[m] / (sw * sw))
+    a, b = dx[m], dy[m]
+    A = np.stack([a * a, a * b, b * b, a, b, np.ones_like(a)], axis=1)
+    res = img[m] - A @ sol
+    s2 = float(np.sum(wt * res * res) / max(np.sum(wt) - 6, 1.0))
+    try:
+        cov = s2 * np.linalg.inv((A * wt[:, None]).T @ A)[3:5, 3:5]
+        Hinv = np.linalg.inv(np.array([[2 * sol[0], sol[1]], [sol[1], 2 * sol[2]]]))
+        pc = Hinv @ cov @ Hinv.T
+        sigma = math.sqrt(max(0.5 * np.trace(pc), 0.0))
+    except np.linalg.LinAlgError:
+        sigma = 1.0
+    # the quadratic model is only approximate on a real (blurred step) X-corner: add a model floor
+    sigma = math.sqrt(sigma * sigma + 0.05 ** 2)
+    return RefineResult(px, py, sigma, "saddle", True)
+
+
+# --------------------------------------------------------------------------------------------------
+# point-symmetry fit
+
+
+def _cubic_weights(t: float) -> np.ndarray:
+    """Keys (a = -0.5) cubic interpolation weights for taps at -1, 0, 1, 2 and fraction t in [0, 1)."""
+    t2, t3 = t * t, t * t * t
+    return np.array([-0.5 * t3 + t2 - 0.5 * t, 1.5 * t3 - 2.5 * t2 + 1.0,
+                     -1.5 * t3 + 2.0 * t2 + 0.5 * t, 0.5 * t3 - 0.5 * t2], np.float32)
+
+
+def _subpixel_shift(img: np.ndarray, fx: float, fy: float) -> np.ndarray:
+    """S[j, i] = img(i + fx, j + fy) by separable cubic interpolation (edges replicated)."""
+    import cv2
+
+    kx = _cubic_weights(fx).reshape(1, 4)
+    ky = _cubic_weights(fy).reshape(4, 1)
+    # filter2D correlates: output(i) = sum_k k[k] img(i + k - anchor); anchor 1 gives taps -1..2
+    return cv2.sepFilter2D(img, cv2.CV_32F, kx, ky, anchor=(1, 1), borderType=cv2.BORDER_REPLICATE)
+
+
+def _symmetry_offsets(w: float, shape_hint: np.ndarray | None) -> np.ndarray:
+    """Integer offsets d (n, 2) in one half-plane covering the fitting window (disc or hint ellipse)."""
+    n = int(math.ceil(w))
+    gx, gy = np.meshgrid(np.arange(-n, n + 1), np.arange(-n, n + 1))
+    d = np.stack([gx.ravel(), gy.ravel()], axis=1).astype(np.float64)
+    half = (d[:, 1] > 0) | ((d[:, 1] == 0) & (d[:, 0] > 0))
+    d = d[half]
+    if shape_hint is not None:
+        J = np.asarray(shape_hint, float).reshape(2, 2)
+        # normalise the hint so that its larger axis maps to w pixels
+        s = np.linalg.svd(J, compute_uv=False)
+        u = np.linalg.solve(J / s[0] * w, d.T).T
+        inside = np.einsum("ij,ij->i", u, u) <= 1.0
+    else:
+        inside = np.einsum("ij,ij->i", d, d) <= w * w
+    return d[inside]
+
+
+def refine_symmetry(gray: np.ndarray, x0: float, y0: float, radius_px: float, window_px: float | None = None,
+                    max_shift_px: float | None = None, shape_hint: np.ndarray | None = None,
+                    max_iter: int = 20) -> RefineResult:
+    """Point-symmetry Gauss-Newton fit (see module doc). ``shape_hint``: optional 2x2 matrix mapping
+    marker-plane directions to image directions near the centre (e.g. the local Jacobian of the
+    image-from-plane homography); only its shape is used, to make the window an ellipse that stays
+    inside a foreshortened pattern."""
+    import cv2
+
+    gray = _check_inputs(gray, x0, y0, radius_px)
+    w = float(window_px) if window_px is not None else default_window(radius_px)
+    max_shift = float(max_shift_px) if max_shift_px is not None else max(2.0, 0.35 * radius_px)
+    ss = float(np.clip(0.12 * w, 0.7, 2.5))  # light smoothing: stable interpolation and gradients
+    half = int(math.ceil(w + max_shift + 3 * ss + 3))
+    patch = _Patch(gray, x0, y0, half)
+    if not patch.valid:
+        return _fail(x0, y0, "symmetry", "too close to the image border")
+    img = cv2.GaussianBlur(patch.data, (0, 0), ss, borderType=cv2.BORDER_REFLECT)
+    d = _symmetry_offsets(w, shape_hint)
+    if len(d) < 8:
+        return _fail(x0, y0, "symmetry", "window too small")
+    di = d.astype(np.intp)
+    rr = np.sqrt(np.einsum("ij,ij->i", d, d))
+    rmax = rr.max()
+    wt = np.where(rr < 0.7 * rmax, 1.0, 0.5 + 0.5 * np.cos(np.pi * (rr - 0.7 * rmax) / (0.3 * rmax + 1e-9)))
+    px, py = float(x0), float(y0)
+    hh, ww = img.shape
+    nmax = int(np.abs(di).max())
+    converged = False
+    sn = np.inf
+    for _ in range(max_iter):
+        lx, ly = px - patch.x0, py - patch.y0
+        ix, iy = int(math.floor(lx)), int(math.floor(ly))
+        if ix - nmax < 3 or iy - nmax < 3 or ix + nmax > ww - 4 or iy + nmax > hh - 4:
+            return _fail(x0, y0, "symmetry", "window leaves the image")
+        # every sample p +- d shares the fractional part of p: shift the patch once by exact cubic
+        # weights (cv2.remap quantises positions to 1/32 px, which would floor the accuracy)
+        sh = _subpixel_shift(img, lx - ix, ly - iy)
+        gx = cv2.Sobel(sh, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+        gy = cv2.Sobel(sh, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+        stack = np.dstack([sh, gx, gy])
+        sp = stack[iy + di[:, 1], ix + di[:, 0]].astype(np.float64)
+        sm = stack[iy - di[:, 1], ix - di[:, 0]].astype(np.float64)
+        r = sp[:, 0] - sm[:, 0]
+        J = np.column_stack([sp[:, 1] - sm[:, 1], sp[:, 2] - sm[:, 2], -2 * d[:, 0], -2 * d[:, 1]])
+        JW = J * wt[:, None]
+        N = JW.T @ J
+        try:
+            delta = -np.linalg.solve(N, JW.T @ r)
+        except np.linalg.LinAlgError:
+            return _fail(x0, y0, "symmetry", "degenerate fit (no structure in the window)")
+        step = delta[:2]
+        sn = float(np.hypot(*step))
+        if sn > 0.5 * w:
+            step = step * (0.5 * w / sn)
+        px, py = px + step[0], py + step[1]
+        if np.hypot(px - x0, py - y0) > max_shift:
+            return _fail(x0, y0, "symmetry", "moved too far from the seed")
+        if sn < 1e-4:
+            converged = True
+            break
+    if not converged and sn > 1e-2:
+        return _fail(x0, y0, "symmetry", "did not converge")
+    # residual after solving for the gradient nuisance at the final position
+    g = np.linalg.lstsq(J[:, 2:] * np.sqrt(wt)[:, None], r * np.sqrt(wt), rcond=None)[0]
+    res = r - J[:, 2:] @ g
+    dof = max(float(np.sum(wt)) - 4.0, 1.0)
+    s2 = float(np.sum(wt * res * res) / dof)
+    try:
+        cov = s2 * np.linalg.inv(N)[:2, :2]
+        sigma = math.sqrt(max(0.5 * float(np.trace(cov)), 0.0))
+    except np.linalg.LinAlgError:
+        return _fail(x0, y0, "symmetry", "degenerate fit")
+    # neighbouring samples are correlated by the smoothing (about 4*pi*ss^2 samples per independent one)
+    sigma *= math.sqrt(max(1.0, 4.0 * math.pi * ss * ss))
+    sigma = math.sqrt(sigma * sigma + 0.01 ** 2)
+    # a pattern that is not point symmetric leaves large residuals relative to its contrast
+    contrast = float(np.percentile(np.abs(sp[:, 0] - np.median(sp[:, 0])), 90)) + 1e-6
+    if math.sqrt(s2) > 0.35 * contrast:
+        return RefineResult(px, py, sigma, "symmetry", False, "window is not point symmetric")
+    return RefineResult(px, py, sigma, "symmetry", True)
+
+
+# --------------------------------------------------------------------------------------------------
+# Hough lines (seed paper, section 4.3)
+
+
+def _refit_line(mag: np.ndarray, X: np.ndarray, Y: np.ndarray, theta: float, rho: float, band: float,
+                centre: tuple[float, float], hole: float):
+    """Weighted total-least-squares line through the gradient-magnitude mass within ``band`` of the
+    Hough line (normal form), skipping a ``hole`` around ``centre`` where the two edges mix."""
+    c, s = math.cos(theta), math.sin(theta)
+    dist = X * c + Y * s - rho
+    m = (np.abs(dist) <= band) & (np.hypot(X - centre[0], Y - centre[1]) > hole)
+    wts = mag[m].astype(np.float64)
+    if wts.size < 6 or wts.sum() <= 0:
+        return None
+    xs, ys = X[m], Y[m]
+    mx, my = np.average(xs, weights=wts), np.average(ys, weights=wts)
+    cxx = np.average((xs - mx) ** 2, weights=wts)
+    cyy = np.average((ys - my) ** 2, weights=wts)
+    cxy = np.average((xs - mx) * (ys - my), weights=wts)
+    evals, evecs = np.linalg.eigh(np.array([[cxx, cxy], [cxy, cyy]]))
+    normal = evecs[:, 0]
+    line = np.array([normal[0], normal[1], -(normal[0] * mx + normal[1] * my)])
+    n_eff = wts.sum() ** 2 / np.sum(wts ** 2)
+    length = math.sqrt(max(evals[1], 1e-9))
+    spread = math.sqrt(max(evals[0], 0.0))
+    return line, spread, n_eff, length
+
+
+def refine_hough(gray: np.ndarray, x0: float, y0: float, radius_px: float, window_px: float | None = None,
+                 max_shift_px: float | None = None) -> RefineResult:
+    """The seed paper's Hough-line intersection, with a least-squares re-fit of both lines."""
+    import cv2
+
+    gray = _check_inputs(gray, x0, y0, radius_px)
+    max_shift = float(max_shift_px) if max_shift_px is not None else max(2.0, 0.35 * radius_px)
+    # lines need length: use most of the pattern, but stay inside it
+    R = float(window_px) * 1.4 if window_px is not None else float(np.clip(0.7 * radius_px, 5.0, 80.0))
+    half = int(math.ceil(R + max_shift + 2))
+    patch = _Patch(gray, x0, y0, half)
+    if not patch.valid:
+        return _fail(x0, y0, "hough", "too close to the image border")
+    img = cv2.GaussianBlur(patch.data, (0, 0), 1.0)
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
+    mag = cv2.magnitude(gx, gy)
+    hh, ww = img.shape
+    X, Y = np.meshgrid(np.arange(ww, dtype=np.float64) + patch.x0, np.arange(hh, dtype=np.float64) + patch.y0)
+    inside = np.hypot(X - x0, Y - y0) <= R
+    hi = float(np.percentile(mag[inside], 95))
+    if hi <= 1e-3:
+        return _fail(x0, y0, "hough", "no edges")
+    u8 = np.clip(img, 0, 255).astype(np.uint8)
+    edges = cv2.Canny(u8, 0.2 * hi / 4, 0.5 * hi / 4, L2gradient=True)  # Sobel ksize 3 scales by 4
+    edges[~inside] = 0
+    votes_min = max(5, int(0.5 * R))
+    lines = cv2.HoughLines(edges, 0.5, np.pi / 360, votes_min)
+    if lines is None:
+        return _fail(x0, y0, "hough", "no lines")
+    lines = lines[:, 0, :]  # (rho, theta) in patch coordinates, most votes first
+    cands = []
+    for rho, theta in lines:
+        rho_img = rho + patch.x0 * math.cos(theta) + patch.y0 * math.sin(theta)
+        if abs(x0 * math.cos(theta) + y0 * math.sin(theta) - rho_img) <= max_shift + 1.0:
+            cands.append((float(rho_img), float(theta)))
+    if not cands:
+        return _fail(x0, y0, "hough", "no line through the seed")
+    l1 = cands[0]
+    l2 = None
+    for c in cands[1:]:
+        dth = math.degrees(abs(c[1] - l1[1])) % 180.0
+        if 45.0 < dth < 135.0:
+            l2 = c
+            break
+    if l2 is None:
+        return _fail(x0, y0, "hough", "no second line at 45..135 degrees")
+    hole = max(1.5, 0.12 * R)
+    fits = [_refit_line(mag, X, Y, th, rh, 2.0, (x0, y0), hole) for rh, th in (l1, l2)]
+    if any(f is None for f in fits):
+        return _fail(x0, y0, "hough", "line re-fit failed")
+    p = np.cross(fits[0][0], fits[1][0])
+    if abs(p[2]) < 1e-9:
+        return _fail(x0, y0, "hough", "parallel lines")
+    x, y = p[0] / p[2], p[1] / p[2]
+    if np.hypot(x - x0, y - y0) > max_shift:
+        return _fail(x0, y0, "hough", "moved too far from the seed")
+    n1, n2 = fits[0][0][:2], fits[1][0][:2]
+    sin_a = abs(n1[0] * n2[1] - n1[1] * n2[0])
+    # each line's offset uncertainty ~ edge spread / sqrt(effective samples)
+    s_lines = [f[1] / math.sqrt(max(f[2], 1.0)) for f in fits]
+    sigma = math.sqrt(s_lines[0] ** 2 + s_lines[1] ** 2) / max(sin_a, 0.3)
+    sigma = math.sqrt(sigma * sigma + 0.05 ** 2)
+    return RefineResult(float(x), float(y), float(sigma), "hough", True)
+
+
+# --------------------------------------------------------------------------------------------------
+
+
+def refine_center(gray: np.ndarray, x0: float, y0: float, radius_px: float, method: str = "auto", *,
+                  window_px: float | None = None, max_shift_px: float | None = None,
+                  shape_hint: np.ndarray | None = None) -> RefineResult:
+    """Refine the centre of the marker seen near (``x0``, ``y0``) in ``gray``.
+
+    gray: HxW image (uint8 or float), full resolution; only a window around the seed is read.
+    x0, y0: approximate centre (pixels, OpenCV convention), within ``max_shift_px`` of the truth.
+    radius_px: approximate apparent radius of the pattern (pixels); sets the window (``window_px``,
+        default :func:`default_window`) and the allowed shift (default max(2, 0.35 radius)).
+    method: "auto", "symmetry", "saddle" or "hough" (see module doc).
+    shape_hint: optional 2x2 local perspective (image directions from marker-plane directions).
+
+    Returns a :class:`RefineResult`; ``ok`` is False (with a ``reason``) when no X-corner was found,
+    in which case (x, y) is the seed.
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown refinement method {method!r}; valid: {', '.join(METHODS)}")
+    kw = dict(window_px=window_px, max_shift_px=max_shift_px)
+    if method == "saddle":
+        return refine_saddle(gray, x0, y0, radius_px, **kw)
+    if method == "hough":
+        return refine_hough(gray, x0, y0, radius_px, **kw)
+    if method == "symmetry":
+        return refine_symmetry(gray, x0, y0, radius_px, shape_hint=shape_hint, **kw)
+    w = float(window_px) if window_px is not None else default_window(radius_px)
+    # the saddle seed only needs the X-corner's core: a small window keeps it cheap on big markers
+    sad = refine_saddle(gray, x0, y0, radius_px, window_px=min(w, 6.0), max_shift_px=max_shift_px)
+    seed = (sad.x, sad.y) if sad.ok else (x0, y0)
+    shift = max_shift_px if max_shift_px is not None else max(2.0, 0.35 * radius_px)
+    sym = refine_symmetry(gray, seed[0], seed[1], radius_px, window_px=window_px,
+                          max_shift_px=shift, shape_hint=shape_hint)
+    if sym.ok and np.hypot(sym.x - x0, sym.y - y0) <= shift:
+        return sym
+    others = [r for r in (sad, refine_hough(gray, x0, y0, radius_px, **kw)) if r.ok]
+    if not others:
+        return _fail(x0, y0, "auto", f"symmetry: {sym.reason}; saddle: {sad.reason}")
+    return min(others, key=lambda r: r.sigma_px)
+
+
+__all__ = ["RefineResult", "refine_center", "refine_saddle", "refine_symmetry", "refine_hough",
+           "default_window", "METHODS"]
