@@ -163,8 +163,8 @@ class _Pose:
 def _random_pose(rng: np.random.Generator, K: np.ndarray, xy: tuple[float, float], tilt_max_deg: float) -> _Pose:
     ray = np.linalg.solve(K, np.array([xy[0], xy[1], 1.0]))
     ray /= np.linalg.norm(ray)
-    # tilt: sin-weighted draws favour oblique views a little less than uniform in angle would
-    tilt = math.radians(tilt_max_deg) * math.sqrt(rng.random())
+    # tilt: uniform in angle between facing the ray and tilt_max_deg, about a random axis
+    tilt = math.radians(tilt_max_deg) * rng.random()
     azim = rng.uniform(0, 2 * math.pi)
     roll = rng.uniform(0, 2 * math.pi)
     R_tilt = _rotation(np.array([math.cos(azim), math.sin(azim), 0.0]), tilt)
