@@ -1,0 +1,93 @@
+"""Multi-scale X-corner candidates: where four sectors (dark, bright, dark, bright) meet.
+
+Response: the negative determinant of the Hessian of the image smoothed with a Gaussian of scale
+``sigma`` (pixels of the level). An X-corner is a saddle (det H < 0, in every orientation); a straight
+edge has det H ~ 0 and a blob det H > 0. For an ideal X-corner of contrast c (bright minus dark),
+Lxy = c / (pi sigma^2) at its centre, so ``c_hat = pi sigma^2 sqrt(-det H)`` estimates the contrast in
+grey levels at any scale; thresholds are set in grey levels.
+
+Levels: the search image and its 2x area-reduced copies; an X-corner is found at every level whose
+sigma is below about half its quadrant size, so small markers show at fine levels and large ones at
+all levels (the verifier decides the extent).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """An X-corner candidate. x, y: position in the *search image* pixels (OpenCV convention);
+    level: pyramid level it was found at (scale 2**level of the search image); contrast: c_hat."""
+
+    x: float
+    y: float
+    level: int
+    contrast: float
+
+
+def build_pyramid(search: np.ndarray, min_side: int = 40) -> list[np.ndarray]:
+    """[search, search/2, search/4, ...] as float32, area-averaged, while the short side >= min_side."""
+    import cv2
+
+    levels = [np.asarray(search, np.float32)]
+    while min(levels[-1].shape) // 2 >= min_side:
+        a = levels[-1]
+        levels.append(cv2.resize(a, (a.shape[1] // 2, a.shape[0] // 2), interpolation=cv2.INTER_AREA))
+    return levels
+
+
+def xcorner_contrast(level: np.ndarray, sigma: float = 1.5) -> np.ndarray:
+    """c_hat map (float32, grey levels, >= 0) of one level; see the module doc."""
+    import cv2
+
+    g = cv2.GaussianBlur(level, (0, 0), sigma)
+    # second derivatives by 3x3 Sobel: Lxx, Lyy scaled by 1/4, Lxy by 1/4 as well
+    lxx = cv2.Sobel(g, cv2.CV_32F, 2, 0, ksize=3, scale=0.25)
+    lyy = cv2.Sobel(g, cv2.CV_32F, 0, 2, ksize=3, scale=0.25)
+    lxy = cv2.Sobel(g, cv2.CV_32F, 1, 1, ksize=3, scale=0.25)
+    negdet = cv2.subtract(cv2.multiply(lxy, lxy), cv2.multiply(lxx, lyy))
+    np.maximum(negdet, 0.0, out=negdet)
+    cv2.sqrt(negdet, negdet)
+    negdet *= np.float32(np.pi * sigma * sigma)
+    return negdet
+
+
+def find_candidates(levels: list[np.ndarray], min_contrast: float, max_per_level: int = 300,
+                    sigma: float = 1.5, border: int = 3) -> list[Candidate]:
+    """Local maxima of c_hat above ``min_contrast`` on every level, strongest first per level,
+    at most ``max_per_level`` each; positions mapped to search-image pixels."""
+    import cv2
+
+    out: list[Candidate] = []
+    nms = int(2 * round(sigma) + 1) | 1
+    kernel = np.ones((nms, nms), np.uint8)
+    for li, lev in enumerate(levels):
+        c = xcorner_contrast(lev, sigma)
+        peak = (c >= cv2.dilate(c, kernel)) & (c >= min_contrast)
+        peak[:border] = peak[-border:] = False
+        peak[:, :border] = peak[:, -border:] = False
+        ys, xs = np.nonzero(peak)
+        if xs.size == 0:
+            continue
+        vals = c[ys, xs]
+        order = np.argsort(-vals)[:max_per_level]
+        s = float(2 ** li)
+        for i in order:
+            x, y = int(xs[i]), int(ys[i])
+            # parabolic sub-pixel peak (enough to seed the verifier)
+            dx = dy = 0.0
+            if 0 < x < c.shape[1] - 1 and 0 < y < c.shape[0] - 1:
+                l, r, m = c[y, x - 1], c[y, x + 1], c[y, x]
+                den = l - 2 * m + r
+                dx = float(np.clip(0.5 * (l - r) / den, -0.5, 0.5)) if den < 0 else 0.0
+                u, d = c[y - 1, x], c[y + 1, x]
+                den = u - 2 * m + d
+                dy = float(np.clip(0.5 * (u - d) / den, -0.5, 0.5)) if den < 0 else 0.0
+            out.append(Candidate((x + dx + 0.5) * s - 0.5, (y + dy + 0.5) * s - 0.5, li, float(vals[i])))
+    return out
+
+
+__all__ = ["Candidate", "build_pyramid", "xcorner_contrast", "find_candidates"]
