@@ -335,18 +335,25 @@ class TripletIndex:
         mt = problem.model_triangles()
         if len(wt) == 0 or len(mt) == 0:
             return
-        tree = cKDTree(mt.inv)
+        # 1D index on the first invariant (sorted), filtered on the second: a box query in
+        # (L0/L2, L1/L2) with a per-surveyed-triangle half-width 4·tol/L2 (worst-case invariant error)
+        order = np.argsort(mt.inv[:, 0], kind="stable")
+        inv0, inv1 = mt.inv[order, 0], mt.inv[order, 1]
         tol = problem.tol
         for start in range(0, len(wt), self.chunk):
-            sl = slice(start, start + self.chunk)
-            radius = 4.0 * tol / wt.sides[sl, 2]
-            hits = tree.query_ball_point(wt.inv[sl], radius, p=np.inf)
-            lens = np.fromiter((len(h) for h in hits), dtype=np.intp, count=len(hits))
-            if lens.sum() == 0:
+            q = wt.inv[start:start + self.chunk]
+            r = 4.0 * tol / wt.sides[start:start + self.chunk, 2]
+            lo = np.searchsorted(inv0, q[:, 0] - r, side="left")
+            n = np.searchsorted(inv0, q[:, 0] + r, side="right") - lo
+            total = int(n.sum())
+            if total == 0:
                 continue
-            si = np.repeat(np.arange(start, start + len(hits)), lens)
-            di = np.fromiter(itertools.chain.from_iterable(hits), dtype=np.intp, count=int(lens.sum()))
-            yield from _expand(wt, mt, si, di, tol, problem.config.batch)
+            si = np.repeat(np.arange(len(q)), n)
+            di = lo[si] + np.arange(total) - np.repeat(np.cumsum(n) - n, n)
+            keep = np.abs(inv1[di] - q[si, 1]) <= r[si]
+            if not keep.any():
+                continue
+            yield from _expand(wt, mt, si[keep] + start, order[di[keep]], tol, problem.config.batch)
 
 
 def _expand(wt: Triangles, mt: Triangles, si: np.ndarray, di: np.ndarray, tol: float,
@@ -745,3 +752,59 @@ def plain_ransac(detected, surveyed, *, rng: np.random.Generator,
 
     return register_points(detected, surveyed, rng=rng, config=replace(config, max_hypotheses=max_hypotheses),
                            generator=RandomTriplets())
+
+
+# ----------------------------------------------------------------------------------------------
+# Synthetic problems (tests, bench, demo)
+# ----------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class SyntheticRegistration:
+    """A registration problem with known truth.
+
+    detected: (N, 3) model-frame points; surveyed: (M, 3) observed surveyed points (metres);
+    truth: the true world_from_model; labels: (N,) surveyed row of each detected point, −1 for a false
+    detection; surveyed_true: (M, 3) noise-free surveyed points.
+    """
+
+    detected: np.ndarray
+    surveyed: np.ndarray
+    truth: Sim3
+    labels: np.ndarray
+    surveyed_true: np.ndarray
+
+    def true_pairing(self) -> dict[int, int]:
+        return {i: int(j) for i, j in enumerate(self.labels) if j >= 0}
+
+
+def simulate_detections(surveyed_true, rng: np.random.Generator, *, n_seen: int | None = None,
+                        n_false: int = 0, noise: float = 0.01, survey_noise: float = 0.0,
+                        scale_range: tuple[float, float] = (0.1, 30.0), false_box=None,
+                        seen: np.ndarray | None = None) -> SyntheticRegistration:
+    """Detections of a surveyed layout in a random model frame.
+
+    surveyed_true: (M, 3) true surveyed points (metres). ``n_seen`` random ones (or rows ``seen``) are
+    detected with per-axis Gaussian noise ``noise`` (metres, before the change of frame); ``n_false``
+    false detections are drawn uniformly in ``false_box`` ((2, 3) min/max corners; default the
+    surveyed bounding box); the observed surveyed points get ``survey_noise``. The model frame is a
+    random similarity: log-uniform scale in ``scale_range`` (model units per metre), uniform random
+    rotation, translation of the order of the site. Detected rows are shuffled.
+    """
+    from scipy.spatial.transform import Rotation
+
+    sur = np.asarray(surveyed_true, dtype=np.float64)
+    m = len(sur)
+    if seen is None:
+        seen = rng.choice(m, m if n_seen is None else n_seen, replace=False)
+    seen = np.asarray(seen, dtype=np.intp)
+    box = np.array([sur.min(axis=0), sur.max(axis=0)]) if false_box is None else np.asarray(false_box, float)
+    world_pts = np.vstack([sur[seen] + rng.normal(0.0, noise, (len(seen), 3)),
+                           rng.uniform(box[0], box[1], (n_false, 3))])
+    labels = np.concatenate([seen, np.full(n_false, -1)])
+    perm = rng.permutation(len(world_pts))
+    world_pts, labels = world_pts[perm], labels[perm]
+    lo, hi = np.log(scale_range[0]), np.log(scale_range[1])
+    model_from_world = Sim3(float(np.exp(rng.uniform(lo, hi))), Rotation.random(random_state=rng).as_matrix(),
+                            rng.normal(0.0, 1.0, 3) * max(1.0, float(np.ptp(sur, axis=0).max())))
+    observed = sur + rng.normal(0.0, survey_noise, sur.shape) if survey_noise > 0 else sur.copy()
+    return SyntheticRegistration(model_from_world(world_pts), observed, model_from_world.inverse(), labels, sur)
