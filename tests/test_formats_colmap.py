@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 from cpdetect.errors import InputError
 from cpdetect.formats.colmap import (apply_sim3_to_colmap, camera_from_colmap, camera_to_colmap,
                                      find_colmap_model, read_colmap, write_colmap)
+from cpdetect.formats.reconstruction import detect_reconstruction_format, read_reconstruction
 from geometry.camera import Camera
 from geometry.scene import ImageRecord, Scene
 from geometry.transforms import Rigid3, Sim3
@@ -219,3 +220,19 @@ def test_apply_sim3_to_colmap(tmp_path):
         np.testing.assert_allclose(uv_new[front_old], uv_old[front_old], atol=1e-7, rtol=0)
     with pytest.raises(InputError, match="output folder is the input"):
         apply_sim3_to_colmap(src, sim, src)
+
+
+def test_read_reconstruction_detects_colmap(tmp_path):
+    scene = make_scene(np.random.default_rng(6))
+    write_colmap(scene, tmp_path / "proj" / "sparse" / "0", binary=True)
+    assert detect_reconstruction_format(tmp_path / "proj") == ("colmap", tmp_path / "proj")
+    assert detect_reconstruction_format(tmp_path / "proj" / "sparse" / "0" / "images.bin")[0] == "colmap"
+    got = read_reconstruction(tmp_path / "proj")
+    assert got.meta["format"] == "colmap"
+    assert_scenes_equal(scene, got)
+    (tmp_path / "elsewhere").mkdir()
+    with pytest.raises(InputError, match="no reconstruction found"):
+        read_reconstruction(tmp_path / "elsewhere")
+    (tmp_path / "x.obj").write_text("v 0 0 0")
+    with pytest.raises(InputError, match="unknown reconstruction format"):
+        read_reconstruction(tmp_path / "x.obj")

@@ -13,6 +13,7 @@ from cpdetect.formats.metashape import (MarkerRecord, camera_from_metashape, cam
                                         read_metashape_markers, write_metashape_cameras,
                                         write_metashape_markers)
 from cpdetect.formats.odm import GcpObservation
+from cpdetect.formats.reconstruction import read_reconstruction
 from geometry.camera import Camera
 from geometry.scene import ImageRecord, Scene
 from geometry.transforms import Rigid3, Sim3
@@ -185,3 +186,10 @@ def test_not_metashape_and_missing(tmp_path):
         read_metashape_cameras(p)
     with pytest.raises(InputError, match="not found"):
         read_metashape_markers(tmp_path / "none.xml")
+
+
+def test_read_reconstruction_detects_metashape(tmp_path):
+    scene = make_scene(np.random.default_rng(4))
+    got = read_reconstruction(write_metashape_cameras(scene, tmp_path / "cams.xml"))
+    assert got.meta["format"] == "metashape" and list(got.images) == list(scene.images)
+    assert got.meta["ecef_from_model"] is got.meta["chunk_transform"]

@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 from cpdetect.errors import InputError
 from cpdetect.formats.opensfm import (camera_from_opensfm, camera_to_opensfm, ecef_from_enu, read_opensfm,
                                       write_opensfm)
+from cpdetect.formats.reconstruction import read_reconstruction
 from geometry.camera import Camera
 from geometry.scene import ImageRecord, Scene
 from geometry.transforms import Rigid3
@@ -118,3 +119,14 @@ def test_bad_files(tmp_path):
     p.write_text('{"type": "FeatureCollection"}')
     with pytest.raises(InputError, match="not an OpenSfM"):
         read_opensfm(p)
+
+
+def test_read_reconstruction_detects_odm_project(tmp_path):
+    scene = make_scene(np.random.default_rng(3))
+    write_opensfm(scene, tmp_path / "odm" / "opensfm" / "reconstruction.json")
+    got = read_reconstruction(tmp_path / "odm")
+    assert got.meta["format"] == "opensfm" and list(got.images) == list(scene.images)
+    assert read_reconstruction(tmp_path / "odm" / "opensfm" / "reconstruction.json").meta["format"] == "opensfm"
+    write_opensfm(Scene(scene.cameras, {}), tmp_path / "empty.json")
+    with pytest.raises(InputError, match="no registered"):
+        read_reconstruction(tmp_path / "empty.json")

@@ -7,7 +7,11 @@ from scipy.spatial.transform import Rotation
 
 from cpdetect.errors import InputError
 from cpdetect.formats.ply import read_ply_points, transform_ply, write_ply_points
-from geometry.transforms import Sim3
+from cpdetect.formats.colmap import write_colmap
+from cpdetect.formats.reconstruction import read_reconstruction
+from geometry.camera import Camera
+from geometry.scene import ImageRecord, Scene
+from geometry.transforms import Rigid3, Sim3
 
 o3d = pytest.importorskip("open3d")
 
@@ -98,3 +102,17 @@ def test_bad_files(tmp_path, content, match, line):
     with pytest.raises(InputError):
         transform_ply(p, SIM, tmp_path / "out.ply")
     assert not (tmp_path / "out.ply").exists()
+
+
+def test_read_reconstruction_with_cloud_and_mesh(tmp_path):
+    scene = Scene({1: Camera(100, 80, 90.0, 90.0, 49.5, 39.5)}, {"a.jpg": ImageRecord("a.jpg", 1, Rigid3.identity())})
+    write_colmap(scene, tmp_path / "m")
+    xyz = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    cloud = write_ply_points(tmp_path / "dense.ply", xyz, np.array([[1, 2, 3], [4, 5, 6]], np.uint8))
+    (tmp_path / "mesh.ply").write_bytes(cloud.read_bytes())
+    got = read_reconstruction(tmp_path / "m", cloud=cloud, mesh=tmp_path / "mesh.ply")
+    np.testing.assert_array_equal(got.points, xyz)
+    np.testing.assert_array_equal(got.colors, [[1, 2, 3], [4, 5, 6]])
+    assert got.mesh_path == str(tmp_path / "mesh.ply") and got.normals is None
+    with pytest.raises(InputError, match="mesh file not found"):
+        read_reconstruction(tmp_path / "m", mesh=tmp_path / "none.ply")

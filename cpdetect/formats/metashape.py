@@ -216,7 +216,8 @@ def read_metashape_cameras(path: str | os.PathLike) -> Scene:
     cameras: {sensor id: Camera} (adjusted calibration, else initial); images: {camera label:
     ImageRecord} for enabled cameras that have a transform (aligned). Labels are image file names
     without folder (Metashape drops the extension by default; match them to files by stem).
-    meta: ``format``, ``source``, ``chunk_transform`` (Sim3 chunk -> ECEF, or absent), ``crs_wkt``
+    meta: ``format``, ``source``, ``chunk_transform`` (Sim3 chunk -> ECEF, or absent; also stored as
+    ``ecef_from_model`` like the OpenSfM reader does), ``crs_wkt``
     (chunk CRS, or absent), ``metashape_camera_ids`` ({label: camera id}), ``metashape_sensor_labels``.
     Raises :class:`InputError` naming file and line on malformed content.
     """
@@ -287,6 +288,7 @@ def read_metashape_cameras(path: str | os.PathLike) -> Scene:
         sim = used[0] if used else next(iter(components.values()))
     if sim is not None:
         meta["chunk_transform"] = sim
+        meta["ecef_from_model"] = sim  # the same similarity under the name every reader uses
     ref = chunk.find("reference")
     if ref is not None and (ref.text or "").strip():
         meta["crs_wkt"] = ref.text.strip()
