@@ -283,17 +283,43 @@ class Problem:
     world_tree: cKDTree
     chance_p: float
     _world_tris: Triangles | None = None
+    _world_cache: tuple | None = None
+
+    def _world_candidates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(candidate triplets (T, 3), their longest sides (T,), distance matrix (M, M)), cached."""
+        if self._world_cache is None:
+            c = self.config
+            trip = _candidate_triplets(self.world, c.full_index_limit, c.knn)
+            dist = _distance_matrix(self.world)
+            a, b, cc = trip[:, 0], trip[:, 1], trip[:, 2]
+            longest = np.maximum(np.maximum(dist[a, b], dist[b, cc]), dist[a, cc])
+            self._world_cache = (trip, longest, dist)
+        return self._world_cache
+
+    @property
+    def world_longest_sides(self) -> np.ndarray:
+        """(T,) longest side of every candidate surveyed triplet (metres)."""
+        return self._world_candidates()[1]
+
+    @property
+    def n_world_candidates(self) -> int:
+        return len(self._world_candidates()[0])
+
+    def world_triangles_of(self, idx: np.ndarray) -> Triangles:
+        """Usable surveyed triangles among candidate triplets ``idx`` (shape and size filters at the
+        initial tolerance), in the order of ``idx``."""
+        trip, _, dist = self._world_candidates()
+        c = self.config
+        tris = Triangles.build(self.world, trip[idx], dist)
+        keep = ((tris.sides[:, 0] >= c.min_side_tolerances * self.tol)
+                & (tris.sides[:, 2] <= c.max_side_ratio * tris.sides[:, 0])
+                & (tris.height >= c.min_height_tolerances * self.tol))
+        return tris.select(keep)
 
     def world_triangles(self) -> Triangles:
-        """Usable surveyed triangles (shape and size filters), largest first."""
+        """All usable surveyed triangles (cached)."""
         if self._world_tris is None:
-            c = self.config
-            tris = Triangles.build(self.world, _candidate_triplets(self.world, c.full_index_limit, c.knn))
-            keep = ((tris.sides[:, 0] >= c.min_side_tolerances * self.tol)
-                    & (tris.sides[:, 2] <= c.max_side_ratio * tris.sides[:, 0])
-                    & (tris.height >= c.min_height_tolerances * self.tol))
-            idx = np.nonzero(keep)[0]
-            self._world_tris = tris.select(idx[np.argsort(-tris.sides[idx, 2], kind="stable")])
+            self._world_tris = self.world_triangles_of(np.arange(self.n_world_candidates))
         return self._world_tris
 
     def model_triangles(self) -> Triangles:
@@ -325,24 +351,27 @@ class TripletIndex:
     """
 
     chunk: int = 64
+    first: int = 1024
     name: str = "triplet-index"
 
     def bound(self, problem: Problem) -> float:
-        return float(max(1, len(problem.world_triangles())) * max(1, math.comb(len(problem.model), 3)))
+        return float(max(1, problem.n_world_candidates) * max(1, math.comb(len(problem.model), 3)))
 
     def batches(self, problem: Problem, rng: np.random.Generator) -> Iterator[np.ndarray]:
-        wt = problem.world_triangles()
         mt = problem.model_triangles()
-        if len(wt) == 0 or len(mt) == 0:
+        if len(mt) == 0:
             return
         # 1D index on the first invariant (sorted), filtered on the second: a box query in
         # (L0/L2, L1/L2) with a per-surveyed-triangle half-width 4·tol/L2 (worst-case invariant error)
         order = np.argsort(mt.inv[:, 0], kind="stable")
         inv0, inv1 = mt.inv[order, 0], mt.inv[order, 1]
         tol = problem.tol
-        for start in range(0, len(wt), self.chunk):
-            q = wt.inv[start:start + self.chunk]
-            r = 4.0 * tol / wt.sides[start:start + self.chunk, 2]
+        for sel in _largest_first(problem.world_longest_sides, self.first, self.chunk):
+            wt = problem.world_triangles_of(sel)  # built lazily, largest first
+            if len(wt) == 0:
+                continue
+            q = wt.inv
+            r = 4.0 * tol / wt.sides[:, 2]
             lo = np.searchsorted(inv0, q[:, 0] - r, side="left")
             n = np.searchsorted(inv0, q[:, 0] + r, side="right") - lo
             total = int(n.sum())
@@ -353,7 +382,24 @@ class TripletIndex:
             keep = np.abs(inv1[di] - q[si, 1]) <= r[si]
             if not keep.any():
                 continue
-            yield from _expand(wt, mt, si[keep] + start, order[di[keep]], tol, problem.config.batch)
+            yield from _expand(wt, mt, si[keep], order[di[keep]], tol, problem.config.batch)
+
+
+def _largest_first(values: np.ndarray, first: int, chunk: int) -> Iterator[np.ndarray]:
+    """Chunks of indices of ``values`` in descending order. Only the ``first`` largest are sorted up
+    front (argpartition); the rest is sorted when a search gets that far (rarely: early accept)."""
+    n = len(values)
+    if n <= first:
+        parts = [np.argsort(-values, kind="stable")]
+    else:
+        top = np.argpartition(-values, first - 1)
+        head = top[:first]
+        parts = [head[np.argsort(-values[head], kind="stable")], top[first:]]
+    for k, part in enumerate(parts):
+        if k == 1:
+            part = part[np.argsort(-values[part], kind="stable")]
+        for start in range(0, len(part), chunk):
+            yield part[start:start + chunk]
 
 
 def _expand(wt: Triangles, mt: Triangles, si: np.ndarray, di: np.ndarray, tol: float,
@@ -540,10 +586,15 @@ def _alternatives(problem: Problem, best: _Pairing, rng: np.random.Generator,
     probes = _probe_triangles(problem, best, rng, c.ambiguity_probes)
     if len(probes) == 0:
         return []
-    wt = problem.world_triangles()
+    ptris = Triangles.build(problem.model, probes)
+    # Alternatives that explain about the same detected points have about the same scale: only surveyed
+    # triangles within a factor 4/3 of the probes' size (in metres) are candidates.
+    metric = best.sim.scale * ptris.sides[:, 2]
+    longest = problem.world_longest_sides
+    band = (longest >= 0.75 * metric.min()) & (longest <= metric.max() / 0.75)
+    wt = problem.world_triangles_of(np.nonzero(band)[0])
     if len(wt) == 0:
         return []
-    ptris = Triangles.build(problem.model, probes)
     found: dict[frozenset, _Pairing] = {}
     min_count = best.n - math.floor(c.ambiguity_margin * best.n)
     partner = np.full(len(problem.model), -1)
@@ -626,10 +677,6 @@ def register_points(detected, surveyed, *, rng: np.random.Generator,
     world = sur - world_c
     model = det - model_c
     problem = Problem(model, world, tol, c, cKDTree(world), _chance_p(world, tol))
-    if len(problem.world_triangles()) == 0:
-        return _failed("no usable surveyed triangle: the surveyed points are nearly collinear or closer "
-                       f"than {c.min_side_tolerances:g} tolerances ({c.min_side_tolerances * tol:.3g} m) "
-                       "to each other", t0, gen=gen.name, tol=tol)
 
     # --- main search --------------------------------------------------------------------------
     bound = gen.bound(problem)
@@ -652,6 +699,10 @@ def register_points(detected, surveyed, *, rng: np.random.Generator,
         if accepted or tried >= c.max_hypotheses:
             break
     if best is None:
+        if len(problem.world_triangles()) == 0:
+            return _failed("no usable surveyed triangle: the surveyed points are nearly collinear or closer "
+                           f"than {c.min_side_tolerances:g} tolerances ({c.min_side_tolerances * tol:.3g} m) "
+                           "to each other", t0, tried, gen.name, tol)
         return _failed("no consistent pairing: no pair of triangles matches within the tolerance",
                        t0, tried, gen.name, tol)
 
