@@ -116,7 +116,7 @@ def visible_points(points_in_world: np.ndarray, camera: Camera, cam_from_world: 
 
     A point is visible when it is in front of the camera, inside the image (``border_px`` away from its
     edge) and ``z <= d * (1 + rel_tol) + abs_tol`` where ``d`` is the depth map at its pixel. Without a
-    depth map only the frustum test is made. Units of ``abs_tol``: model units.
+    depth map only the frustum test is made. ``abs_tol``: model units, a scalar or one per point (n,).
     """
     P = cam_from_world(np.asarray(points_in_world, float).reshape(-1, 3))
     uv, front = camera.project(P)
@@ -124,5 +124,6 @@ def visible_points(points_in_world: np.ndarray, camera: Camera, cam_from_world: 
     if depth_map is not None and vis.any():
         d = depth_map.lookup(uv[vis])
         idx = np.flatnonzero(vis)
-        vis[idx] = P[idx, 2] <= d * (1.0 + rel_tol) + abs_tol
+        tol = np.broadcast_to(np.asarray(abs_tol, float), (len(P),))[idx]
+        vis[idx] = P[idx, 2] <= d * (1.0 + rel_tol) + tol
     return Visibility(uv, P[:, 2], vis)

@@ -1,0 +1,71 @@
+"""``cpdetect georef``: detect, localize, refine, triangulate, register and export (see cpdetect.pipeline)."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+
+def register(sub) -> None:
+    p = sub.add_parser("georef", help="georeference a reconstruction from the markers in its photos",
+                       description="From per-image detections to surveyed, georeferenced control points, "
+                                   "without being told which marker is which. Stages write files into "
+                                   "OUT/stages/ and a rerun resumes.")
+    p.add_argument("--reconstruction", required=True, type=Path,
+                   help="COLMAP model folder (or another format cpdetect reads)")
+    p.add_argument("--images", required=True, type=Path, help="folder of the reconstruction's images")
+    p.add_argument("--gcps", required=True, type=Path, help="surveyed points (gcps.csv)")
+    p.add_argument("--crs", help="CRS of the surveyed points when gcps.csv does not name it, e.g. EPSG:25832")
+    p.add_argument("--cloud", type=Path, help="dense point cloud (PLY) in the model frame, for the cloud mode")
+    p.add_argument("--mesh", type=Path, help="triangle mesh (PLY) in the model frame: depth tests, ray mode")
+    p.add_argument("--detector", default="classical", help="detector name (default: classical)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="detector setting (repeatable)")
+    p.add_argument("--mode", default="auto", choices=["auto", "cloud", "ray", "triangulate"],
+                   help="how markers are first placed in 3D (default: cloud if --cloud and the detector "
+                        "gives probability maps, else ray if --mesh, else triangulate)")
+    p.add_argument("--adjust", action="store_true", help="also bundle-adjust poses (with priors) and markers")
+    p.add_argument("--loss", default="huber", choices=["huber", "cauchy", "soft_l1", "linear"])
+    p.add_argument("--noise", type=float, default=0.02,
+                   help="per-axis survey + detection noise assumed by the registration, metres (default 0.02)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, type=Path, help="output folder")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ..detector import parse_settings
+    from ..pipeline import GeorefInputs, GeorefSettings, run_georef
+
+    settings = GeorefSettings(detector=args.detector, detector_settings=parse_settings(args.set),
+                              mode=args.mode, adjust=args.adjust, loss=args.loss,
+                              registration_noise_m=args.noise, seed=args.seed)
+    inputs = GeorefInputs(reconstruction=args.reconstruction, images=args.images, gcps=args.gcps, out=args.out,
+                          crs=args.crs, cloud=args.cloud, mesh=args.mesh)
+    report = run_georef(inputs, settings, progress=_progress())
+    print_summary(report, sys.stdout)
+    return 0 if report["status"] == "ok" else 1
+
+
+def _progress():
+    try:
+        from tqdm import tqdm
+    except ModuleNotFoundError:  # pragma: no cover
+        return lambda it, **kw: it
+    return lambda it, **kw: tqdm(it, file=sys.stderr, leave=False, **kw)
+
+
+def print_summary(report: dict, fh) -> None:
+    print(f"status: {report['status']}" + (f" ({report['reason']})" if report.get("reason") else ""), file=fh)
+    print(f"markers: {report['n_markers']} found, {report['n_paired']} paired with "
+          f"{report['n_surveyed']} surveyed points (mode {report['mode']}, detector {report['detector']})", file=fh)
+    for m in report["markers"]:
+        res = m["residual_m"]
+        r = "" if res is None else f"  residual {1000 * sum(v * v for v in res) ** 0.5:.1f} mm"
+        print(f"  {m['id']} -> {m['surveyed_name'] or '(none)':12s} views {m['n_views']:3d}  "
+              f"reprojection rms {m['rms_px'] if m['rms_px'] is not None else float('nan'):.2f} px{r}", file=fh)
+    if report["world_from_model"]:
+        w = report["world_from_model"]
+        print(f"world_from_model: scale {w['scale']:.6f}, translation "
+              f"{', '.join(f'{v:.3f}' for v in w['translation'])}", file=fh)
+    if report.get("rms_m") is not None:
+        print(f"residual RMS: {1000 * report['rms_m']:.1f} mm", file=fh)

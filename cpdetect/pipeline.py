@@ -1,0 +1,924 @@
+"""``cpdetect georef``: from photographs and a reconstruction to surveyed, georeferenced markers.
+
+Stages (each writes ``OUTDIR/stages/<name>.json`` with a format version and a key, the hash of its
+inputs, settings and the key of the stage before it; a rerun skips every stage whose file has the
+same key, so an interrupted run resumes and a changed setting recomputes only from where it matters):
+
+1. ``detect``     run the detector on every registered image (one cached file per image in
+                  ``stages/detect/``; probability maps, reduced, in ``stages/prob/``);
+                  also writes ``OUTDIR/detections.json`` (format ``cpdetect.detections/1``).
+2. ``localize``   first 3D estimates of the markers, model frame, by one of three modes:
+                  ``cloud``: colorize the dense cloud with the probability maps (depth-tested against
+                  the mesh or a point z-buffer, :mod:`geometry.fusion`) and DBSCAN the marker points;
+                  ``ray``: cast every detection onto the mesh and cluster the hits;
+                  ``triangulate``: intersect detection rays of image pairs and cluster the midpoints
+                  (no mesh or cloud needed). ``auto`` picks the first one the inputs allow.
+3. ``refine``     project every candidate into every image that sees it (depth test), drop views
+                  where the marker is too small or too oblique, and refine the centre there
+                  (:func:`cpdetect.refine.refine_center`).
+4. ``triangulate`` robust multi-view triangulation of each marker (Huber/Cauchy), optionally a
+                  pose + marker bundle adjustment; per-marker reprojection RMS and covariance.
+5. ``register``   correspondence-free registration of the markers to the surveyed points
+                  (:func:`geometry.registration.register_points`) in a local metric frame.
+6. export         ``report.json``, ``gcp_list.txt`` (ODM), ``markers.xml`` (Metashape).
+
+Frames: the reconstruction's frame is the *model* frame; surveyed points are converted to a local
+Cartesian frame (metres) for registration; ``world_from_model`` in the report maps model points into
+that local frame, and the report also gives each marker in the surveyed CRS.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import re
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+import numpy as np
+
+from .errors import InputError, UsageError
+from .fileio import atomic_path, read_json, write_json_atomic
+
+log = logging.getLogger(__name__)
+
+STAGE_FORMAT = "cpdetect.georef-stage/1"
+REPORT_FORMAT = "cpdetect.georef-report/1"
+DETECTIONS_FORMAT = "cpdetect.detections/1"
+MODES = ("auto", "cloud", "ray", "triangulate")
+
+
+@dataclass(frozen=True)
+class GeorefSettings:
+    """Settings of a georef run (every field takes part in the stage keys).
+
+    detector / detector_settings: the detector and its settings (see :mod:`cpdetect.detector`).
+    mode: "auto", "cloud", "ray" or "triangulate" (see the module docstring).
+    min_score: detections below this score are ignored by the ray and triangulate modes.
+    cloud_threshold: fused score above which a cloud point is a marker point.
+    prob_max_side: longest side (pixels) at which probability maps are kept for the cloud mode.
+    depth_max_side: longest side of the per-image depth maps used for the visibility tests.
+    min_radius_px: views where the marker's apparent radius is smaller are not used.
+    max_obliquity_deg: views seeing the marker plane more obliquely than this are not used.
+    refine_method: method of :func:`cpdetect.refine.refine_center`.
+    sigma_floor_px: smallest pixel sigma used as a weight (refinement sigmas can be optimistic, and
+        pose errors of the reconstruction add to them).
+    loss / f_scale / outlier_sigma: robust triangulation (see :func:`geometry.triangulate.triangulate`).
+    min_views: markers with fewer inlier views are dropped.
+    min_detected_fraction: markers the detector found in fewer of their usable views are dropped.
+    adjust: run the pose + marker bundle adjustment after triangulation; pose priors
+        ``prior_rot_deg`` (degrees) and ``prior_pos`` (model units; None: 0.2 marker sizes).
+    registration_noise_m: per-axis noise assumed by the registration (surveyed + detection), metres.
+    seed: seed of every random choice (registration probes).
+    """
+
+    detector: str = "classical"
+    detector_settings: dict = field(default_factory=dict)
+    mode: str = "auto"
+    min_score: float = 0.3
+    cloud_threshold: float = 0.5
+    prob_max_side: int = 384
+    depth_max_side: int = 480
+    min_radius_px: float = 5.0
+    max_obliquity_deg: float = 75.0
+    refine_method: str = "auto"
+    sigma_floor_px: float = 0.3
+    loss: str = "huber"
+    f_scale: float = 2.0
+    outlier_sigma: float = 6.0
+    min_views: int = 3
+    min_detected_fraction: float = 0.5
+    adjust: bool = False
+    prior_rot_deg: float = 0.05
+    prior_pos: Optional[float] = None
+    registration_noise_m: float = 0.02
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise UsageError(f"unknown mode {self.mode!r}; valid: {', '.join(MODES)}")
+        if self.loss not in ("huber", "cauchy", "soft_l1", "linear"):
+            raise UsageError(f"unknown loss {self.loss!r}; valid: huber, cauchy, soft_l1, linear")
+        if self.min_views < 2:
+            raise UsageError("min_views must be at least 2")
+
+
+@dataclass(frozen=True)
+class GeorefInputs:
+    """Paths of a georef run. crs: the surveyed points' CRS when gcps.csv does not say it."""
+
+    reconstruction: Path
+    images: Path
+    gcps: Path
+    out: Path
+    crs: Optional[str] = None
+    cloud: Optional[Path] = None
+    mesh: Optional[Path] = None
+
+
+# ----------------------------------------------------------------------------------------------------
+# Stage bookkeeping
+
+
+def _hash(obj: Any) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:24]
+
+
+def _file_key(path: Optional[Path]) -> Any:
+    """Cheap identity of a file or folder: (relative name, size, mtime) of each file."""
+    if path is None:
+        return None
+    p = Path(path)
+    if p.is_dir():
+        return [(str(f.relative_to(p)), f.stat().st_size, f.stat().st_mtime_ns)
+                for f in sorted(p.rglob("*")) if f.is_file()]
+    if not p.exists():
+        return None
+    st = p.stat()
+    return (p.name, st.st_size, st.st_mtime_ns)
+
+
+class StageStore:
+    """Stage files under ``OUTDIR/stages``: reuse a stage whose key matches, else compute it."""
+
+    def __init__(self, out: Path):
+        self.dir = Path(out) / "stages"
+        self.ran: list[str] = []
+        self.skipped: list[str] = []
+
+    def run(self, name: str, key_parts: Any, compute: Callable[[], Any]) -> tuple[Any, str]:
+        key = _hash([STAGE_FORMAT, name, key_parts])
+        path = self.dir / f"{name}.json"
+        if path.exists():
+            try:
+                doc = read_json(path, "stage file")
+            except InputError:
+                doc = None
+            if isinstance(doc, dict) and doc.get("format") == STAGE_FORMAT and doc.get("key") == key:
+                log.info("stage %s: up to date (%s), skipped", name, path)
+                self.skipped.append(name)
+                return doc["data"], key
+        t0 = time.perf_counter()
+        data = _finite(compute())
+        write_json_atomic(path, {"format": STAGE_FORMAT, "stage": name, "key": key,
+                                 "seconds": round(time.perf_counter() - t0, 3), "data": data})
+        log.info("stage %s: done in %.1f s", name, time.perf_counter() - t0)
+        self.ran.append(name)
+        return data, key
+
+
+def _safe_name(image_name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]", "_", image_name) + "-" + hashlib.sha1(image_name.encode()).hexdigest()[:8]
+
+
+# ----------------------------------------------------------------------------------------------------
+# Inputs
+
+
+def load_scene(path: Path):
+    """The reconstruction as a :class:`geometry.scene.Scene` (any format cpdetect reads)."""
+    try:
+        from .formats.reconstruction import read_reconstruction
+    except ModuleNotFoundError as exc:
+        if exc.name != "cpdetect.formats.reconstruction":
+            raise
+        from .formats.colmap import read_colmap as read_reconstruction
+    scene = read_reconstruction(path)
+    if not scene.images:
+        raise InputError("the reconstruction has no registered images", path)
+    return scene
+
+
+def _image_paths(scene, images_dir: Path) -> dict[str, Path]:
+    if not Path(images_dir).is_dir():
+        raise InputError("image folder not found", images_dir)
+    found = {}
+    for name in sorted(scene.images):
+        p = Path(images_dir) / name
+        if p.is_file():
+            found[name] = p
+    if not found:
+        raise InputError(f"none of the {len(scene.images)} images of the reconstruction is in this folder "
+                         f"(e.g. {sorted(scene.images)[0]!r})", images_dir)
+    missing = len(scene.images) - len(found)
+    if missing:
+        log.warning("%d registered images are not in %s; they are ignored", missing, images_dir)
+    return found
+
+
+def _load_cloud(path: Path) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    import open3d as o3d
+
+    if not Path(path).is_file():
+        raise InputError("point cloud not found", path)
+    pc = o3d.io.read_point_cloud(str(path))
+    pts = np.asarray(pc.points, dtype=np.float64)
+    if len(pts) == 0:
+        raise InputError("no points in the cloud (unreadable or empty)", path)
+    if not np.all(np.isfinite(pts)):
+        raise InputError("the cloud has non-finite coordinates", path)
+    normals = np.asarray(pc.normals, dtype=np.float64) if pc.has_normals() else None
+    return pts, normals
+
+
+def _load_mesh_scene(path: Optional[Path]):
+    if path is None:
+        return None
+    from geometry.raycast import load_mesh, make_raycasting_scene
+
+    if not Path(path).is_file():
+        raise InputError("mesh not found", path)
+    try:
+        return make_raycasting_scene(load_mesh(path))
+    except ValueError as exc:
+        raise InputError(str(exc).split(": ", 1)[-1], path) from None
+
+
+def _estimate_normals(points: np.ndarray, radius: float) -> np.ndarray:
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30))
+    return np.asarray(pc.normals)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Stage 1: detect
+
+
+def stage_detect(store: StageStore, scene, image_paths: dict[str, Path], settings: GeorefSettings,
+                 progress: Callable = lambda it, **kw: it) -> tuple[dict, str]:
+    """Detections per image: {name: {"width", "height", "detections": [...], "probability": file|None}}."""
+    from .detector import get_detector
+    from .imageio import read_image
+
+    det_key = [settings.detector, settings.detector_settings, settings.prob_max_side]
+    detector = None
+    per_image: dict[str, dict] = {}
+    keys = []
+    for name in progress(list(image_paths), desc="detect", unit="image"):
+        path = image_paths[name]
+        key = _hash([STAGE_FORMAT, "detect-image", det_key, name, _file_key(path)])
+        keys.append(key)
+        cache = store.dir / "detect" / f"{_safe_name(name)}.json"
+        if cache.exists():
+            try:
+                doc = read_json(cache)
+                if doc.get("key") == key:
+                    per_image[name] = doc["data"]
+                    continue
+            except (InputError, AttributeError, KeyError):
+                pass
+        if detector is None:
+            detector = get_detector(settings.detector, **settings.detector_settings)
+        img = read_image(path)
+        t0 = time.perf_counter()
+        res = detector.detect(img)
+        h, w = img.shape[:2]
+        prob_file = None
+        if res.probability is not None:
+            import cv2
+
+            p = np.asarray(res.probability, np.float32)
+            s = min(1.0, settings.prob_max_side / max(p.shape))
+            if s < 1.0:
+                p = cv2.resize(p, (max(1, round(p.shape[1] * s)), max(1, round(p.shape[0] * s))),
+                               interpolation=cv2.INTER_AREA)
+            prob_file = f"prob/{_safe_name(name)}.npy"
+            with atomic_path(store.dir / prob_file) as tmp:
+                with open(tmp, "wb") as fh:
+                    np.save(fh, p.astype(np.float16))
+        data = {"width": int(w), "height": int(h), "seconds": round(time.perf_counter() - t0, 3),
+                "detections": [d.to_dict() for d in res.detections], "probability": prob_file}
+        write_json_atomic(cache, {"format": STAGE_FORMAT, "key": key, "data": data})
+        per_image[name] = data
+    data, key = store.run("detect", keys, lambda: per_image)
+    return data, key
+
+
+def write_detections_json(path: Path, detector: str, per_image: dict) -> None:
+    """OUTDIR/detections.json in the ``cpdetect.detections/1`` format."""
+    images = [{"file": name, "width": d["width"], "height": d["height"], "detections": d["detections"]}
+              for name, d in sorted(per_image.items())]
+    write_json_atomic(path, {"format": DETECTIONS_FORMAT, "detector": detector, "images": images})
+
+
+# ----------------------------------------------------------------------------------------------------
+# Stage 2: localize
+
+
+def _pose_cam(scene, name):
+    rec = scene.images[name]
+    return scene.cameras[rec.camera_id], rec.cam_from_world
+
+
+def _marker_radius_from_depths(scene, per_image, depth_of: Callable) -> float:
+    """Median equal-area marker radius (model units) from detections' radius_px and depth."""
+    radii = []
+    for name, d in per_image.items():
+        dets = d["detections"]
+        if not dets:
+            continue
+        cam, pose = _pose_cam(scene, name)
+        uv = np.array([[x["x"], x["y"]] for x in dets])
+        z = depth_of(name, uv)
+        r = np.array([x["radius_px"] for x in dets]) * z / cam.fx
+        radii.extend(r[np.isfinite(r) & (r > 0)].tolist())
+    if not radii:
+        raise InputError("no detection could be placed in 3D (no detections, or none on the model)")
+    return float(np.median(radii))
+
+
+def _localize_cloud(scene, per_image, settings, cloud, normals, mesh_rc, prob_dir: Path, progress) -> dict:
+    from geometry.clustering import cluster_points, dbscan_params, point_spacing
+    from geometry.fusion import FusionView, fuse_scores
+    from geometry.visibility import mesh_depth_map, zbuffer_depth_map
+
+    rng = np.random.default_rng(settings.seed)
+    spacing = point_spacing(cloud, rng=rng)
+    depth_maps = {}
+
+    def depth_map(name):
+        if name not in depth_maps:
+            cam, pose = _pose_cam(scene, name)
+            if mesh_rc is not None:
+                depth_maps[name] = mesh_depth_map(mesh_rc, cam, pose, settings.depth_max_side)
+            else:
+                # cells about 1.5 point spacings wide at the median depth of the cloud
+                z = np.median(pose(cloud[:: max(1, len(cloud) // 20000)])[:, 2])
+                side = int(np.clip(max(cam.width, cam.height) * 1.0 / (1.5 * spacing * cam.fx / z), 64,
+                                   settings.depth_max_side))
+                depth_maps[name] = zbuffer_depth_map(cloud, cam, pose, side, fill_px=1)
+        return depth_maps[name]
+
+    names = [n for n in per_image if per_image[n]["probability"]]
+    radius = _marker_radius_from_depths(scene, {n: per_image[n] for n in names},
+                                        lambda n, uv: depth_map(n).lookup(uv))
+    marker_size = 2.0 * radius
+    if normals is None:
+        normals = _estimate_normals(cloud, max(3 * spacing, 0.3 * radius))
+
+    def views():
+        for n in progress(names, desc="colorize", unit="image"):
+            cam, pose = _pose_cam(scene, n)
+            prob = np.load(prob_dir / per_image[n]["probability"]).astype(np.float32)
+            yield FusionView(cam, pose, prob, depth_map(n))
+
+    fused = fuse_scores(cloud, views(), normals, rel_tol=0.02, abs_tol=0.25 * radius)
+    params = dbscan_params(spacing, marker_size)
+    clusters = cluster_points(cloud, fused.score, params, threshold=settings.cloud_threshold)
+    cands = []
+    for c in clusters:
+        nrm = _pca_normal(cloud[c.members])
+        # a square of side s has extent s / sqrt(2) and equal-area radius s / sqrt(pi)
+        r = float(np.clip(0.8 * c.extent, 0.5 * radius, 3.0 * radius))
+        cands.append({"center_model": c.centroid.tolist(), "support": c.n_points, "score": c.mean_score,
+                      "radius_model": r, "normal_model": nrm.tolist() if nrm is not None else None})
+    return {"mode": "cloud", "radius_model": radius, "spacing_model": spacing,
+            "dbscan": asdict(params), "n_marker_points": int((fused.score >= settings.cloud_threshold).sum()),
+            "candidates": cands}
+
+
+def _pca_normal(P: np.ndarray) -> Optional[np.ndarray]:
+    if len(P) < 5:
+        return None
+    w, v = np.linalg.eigh(np.cov((P - P.mean(0)).T))
+    return v[:, 0] if w[0] < 0.2 * w[1] else None
+
+
+def _localize_ray(scene, per_image, settings, mesh_rc) -> dict:
+    from geometry.clustering import cluster_centres
+    from geometry.raycast import cast, detection_rays
+
+    hits, weights, radii, normals = [], [], [], []
+    for name, d in per_image.items():
+        dets = [x for x in d["detections"] if x["score"] >= settings.min_score]
+        if not dets:
+            continue
+        cam, pose = _pose_cam(scene, name)
+        o, v = detection_rays(cam, pose, np.array([[x["x"], x["y"]] for x in dets]))
+        h = cast(mesh_rc, o, v)
+        for k in np.flatnonzero(h.hit):
+            z = h.t[k] * (pose.R @ v[k])[2]
+            hits.append(h.points[k])
+            weights.append(dets[k]["score"])
+            radii.append(dets[k]["radius_px"] * z / cam.fx)
+            normals.append(h.normals[k])
+    if not hits:
+        raise InputError("no detection ray hit the mesh (no detections, or the mesh is not in the "
+                         "reconstruction's frame)")
+    hits, weights, normals, radii = np.array(hits), np.array(weights), np.array(normals), np.array(radii)
+    radius = float(np.median(radii))
+    centres, labels = cluster_centres(hits, eps=0.5 * radius, min_samples=2, weights=weights)
+    cands = []
+    for k, c in enumerate(centres):
+        m = labels == k
+        nrm = normals[m].mean(0)
+        cands.append({"center_model": np.median(hits[m], axis=0).tolist(), "support": int(m.sum()),
+                      "score": float(weights[m].mean()), "radius_model": float(np.median(radii[m])),
+                      "normal_model": (nrm / max(np.linalg.norm(nrm), 1e-12)).tolist()})
+    return {"mode": "ray", "radius_model": radius, "n_hits": int(len(hits)), "candidates": cands}
+
+
+def _localize_triangulate(scene, per_image, settings) -> dict:
+    """Intersect detection rays of image pairs with nearby centres; cluster consistent midpoints."""
+    from geometry.clustering import cluster_centres
+    from geometry.raycast import detection_rays
+
+    rays = []  # (image index, origin, dir, radius_px, fx)
+    names = [n for n in per_image if per_image[n]["detections"]]
+    centers = np.array([scene.images[n].center for n in names]).reshape(-1, 3)
+    for i, name in enumerate(names):
+        dets = [x for x in per_image[name]["detections"] if x["score"] >= settings.min_score]
+        if not dets:
+            continue
+        cam, pose = _pose_cam(scene, name)
+        o, v = detection_rays(cam, pose, np.array([[x["x"], x["y"]] for x in dets]))
+        for k, x in enumerate(dets):
+            rays.append((i, o[k], v[k], x["radius_px"], cam.fx))
+    if len(rays) < 2:
+        raise InputError("too few detections to triangulate markers")
+    img = np.array([r[0] for r in rays])
+    O = np.array([r[1] for r in rays])
+    V = np.array([r[2] for r in rays])
+    rpx = np.array([r[3] for r in rays])
+    fx = np.array([r[4] for r in rays])
+    mids, rad = [], []
+    a_idx, b_idx = np.triu_indices(len(rays), 1)
+    keep = img[a_idx] != img[b_idx]
+    a_idx, b_idx = a_idx[keep], b_idx[keep]
+    # closest points of the two rays
+    w0 = O[a_idx] - O[b_idx]
+    a = np.einsum("ij,ij->i", V[a_idx], V[b_idx])
+    d = np.einsum("ij,ij->i", V[a_idx], w0)
+    e = np.einsum("ij,ij->i", V[b_idx], w0)
+    den = 1 - a * a
+    ok = den > np.sin(np.radians(2.0)) ** 2
+    s = np.where(ok, (a * e - d) / np.where(ok, den, 1), 0)
+    t = np.where(ok, (e - a * d) / np.where(ok, den, 1), 0)
+    ok &= (s > 0) & (t > 0)
+    pa = O[a_idx] + s[:, None] * V[a_idx]
+    pb = O[b_idx] + t[:, None] * V[b_idx]
+    gap = np.linalg.norm(pa - pb, axis=1)
+    ra = rpx[a_idx] * s / fx[a_idx]
+    rb = rpx[b_idx] * t / fx[b_idx]
+    r_est = 0.5 * (ra + rb)
+    ok &= (gap < 0.5 * r_est) & (np.abs(ra - rb) < 0.5 * r_est)
+    if not ok.any():
+        raise InputError("no two detections in different images agree on a 3D position")
+    mids = 0.5 * (pa[ok] + pb[ok])
+    radius = float(np.median(r_est[ok]))
+    centres, labels = cluster_centres(mids, eps=0.5 * radius, min_samples=3)
+    r_ok = r_est[ok]
+    cands = [{"center_model": np.median(mids[labels == k], axis=0).tolist(), "support": int((labels == k).sum()),
+              "score": 1.0, "radius_model": float(np.median(r_ok[labels == k])), "normal_model": None}
+             for k in range(len(centres))]
+    del centers
+    return {"mode": "triangulate", "radius_model": radius, "n_pairs": int(ok.sum()), "candidates": cands}
+
+
+def stage_localize(store, scene, per_image, settings, inputs: GeorefInputs, prev_key: str, progress):
+    has_prob = any(d["probability"] for d in per_image.values())
+    mode = settings.mode
+    if mode == "auto":
+        mode = "cloud" if (inputs.cloud and has_prob) else "ray" if inputs.mesh else "triangulate"
+    if mode == "cloud" and not inputs.cloud:
+        raise UsageError("mode 'cloud' needs --cloud")
+    if mode == "cloud" and not has_prob:
+        raise UsageError(f"mode 'cloud' needs probability maps; detector {settings.detector!r} gives none")
+    if mode == "ray" and not inputs.mesh:
+        raise UsageError("mode 'ray' needs --mesh")
+    key = [prev_key, mode, _file_key(inputs.cloud) if mode == "cloud" else None, _file_key(inputs.mesh),
+           asdict(settings)]
+
+    def compute():
+        mesh_rc = _load_mesh_scene(inputs.mesh)
+        if mode == "cloud":
+            cloud, normals = _load_cloud(inputs.cloud)
+            return _localize_cloud(scene, per_image, settings, cloud, normals, mesh_rc, store.dir, progress)
+        if mode == "ray":
+            return _localize_ray(scene, per_image, settings, mesh_rc)
+        return _localize_triangulate(scene, per_image, settings)
+
+    return store.run("localize", key, compute)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Stage 3: refine in every view
+
+
+class _ViewContext:
+    """Per-image depth maps (mesh, else cloud z-buffer, else none) and gray images, cached per pass."""
+
+    def __init__(self, scene, image_paths, settings, inputs):
+        self.scene, self.paths, self.settings = scene, image_paths, settings
+        self.mesh_rc = _load_mesh_scene(inputs.mesh)
+        self.cloud = None
+        if self.mesh_rc is None and inputs.cloud:
+            self.cloud, _ = _load_cloud(inputs.cloud)
+        self._depth = {}
+
+    def depth_map(self, name):
+        from geometry.visibility import mesh_depth_map, zbuffer_depth_map
+
+        if name not in self._depth:
+            cam, pose = _pose_cam(self.scene, name)
+            if self.mesh_rc is not None:
+                self._depth[name] = mesh_depth_map(self.mesh_rc, cam, pose, self.settings.depth_max_side)
+            elif self.cloud is not None:
+                self._depth[name] = zbuffer_depth_map(self.cloud, cam, pose, min(self.settings.depth_max_side, 320))
+            else:
+                self._depth[name] = None
+        return self._depth[name]
+
+
+def refine_views(ctx: _ViewContext, points: np.ndarray, normals: list, radii: np.ndarray, per_image: dict,
+                 gate: float, progress: Callable) -> tuple[list[list[dict]], list[dict], dict]:
+    """Project markers (k, 3, model frame) into every image that sees them and refine the centre there.
+
+    A view is used when the marker is visible (depth test), its apparent radius is at least
+    ``min_radius_px`` and it is seen at most ``max_obliquity_deg`` off its normal (when known). The
+    refinement is seeded at the nearest detection within ``gate`` x the apparent radius of the
+    projected point, else at the projected point. ``radii``: (k,) equal-area marker radii, model units.
+    Returns per marker the observations, per marker counts {"usable", "detected", "refined",
+    "radius_model" (median of the seeding detections' radii, model units, or None)}, and the
+    rejection counts by reason.
+    """
+    from geometry.visibility import visible_points
+
+    from .imageio import read_image
+    from .refine import refine_center
+
+    settings = ctx.settings
+    obs: list[list[dict]] = [[] for _ in points]
+    counts = [{"usable": 0, "detected": 0, "refined": 0} for _ in points]
+    det_radii: list[list[float]] = [[] for _ in points]
+    radii = np.asarray(radii, float).reshape(len(points))
+    rejected: dict[str, int] = {}
+    if len(points) == 0:
+        return obs, counts, rejected
+    cos_max = math.cos(math.radians(settings.max_obliquity_deg))
+    for name in progress(list(ctx.paths), desc="refine", unit="image"):
+        cam, pose = _pose_cam(ctx.scene, name)
+        vis = visible_points(points, cam, pose, ctx.depth_map(name), rel_tol=0.02, abs_tol=0.5 * radii,
+                             border_px=2.0)
+        dets = [d for d in per_image.get(name, {}).get("detections", []) if d["score"] >= settings.min_score]
+        det_xy = np.array([[d["x"], d["y"]] for d in dets]).reshape(-1, 2)
+        todo = []
+        for j in np.flatnonzero(vis.visible):
+            view = pose.center - points[j]
+            cos = 1.0 if normals[j] is None else abs(float(normals[j] @ view)) / np.linalg.norm(view)
+            r_px = cam.fx * radii[j] / vis.depth[j] * math.sqrt(max(cos, 1e-3))
+            if cos < cos_max:
+                rejected["oblique"] = rejected.get("oblique", 0) + 1
+            elif r_px < settings.min_radius_px:
+                rejected["small"] = rejected.get("small", 0) + 1
+            else:
+                todo.append((j, r_px, cos))
+        if not todo:
+            continue
+        gray = read_image(ctx.paths[name], gray=True)
+        for j, r_px, cos in todo:
+            counts[j]["usable"] += 1
+            u, v = vis.uv[j]
+            seed, seeded_by = (float(u), float(v)), "projection"
+            if len(det_xy):
+                dd = np.hypot(det_xy[:, 0] - u, det_xy[:, 1] - v)
+                k = int(dd.argmin())
+                if dd[k] <= gate * r_px:
+                    seed, seeded_by = (float(det_xy[k, 0]), float(det_xy[k, 1])), "detection"
+                    counts[j]["detected"] += 1
+                    det_radii[j].append(dets[k]["radius_px"] * vis.depth[j] / cam.fx / math.sqrt(max(cos, 1e-3)))
+            res = refine_center(gray, seed[0], seed[1], float(r_px), method=settings.refine_method)
+            if not res.ok:
+                rejected["refine failed"] = rejected.get("refine failed", 0) + 1
+                continue
+            counts[j]["refined"] += 1
+            obs[j].append({"image": name, "x": float(res.x), "y": float(res.y), "sigma_px": float(res.sigma_px),
+                           "method": res.method, "seed": seeded_by, "radius_px": float(r_px),
+                           "cos_incidence": float(cos), "predicted": [float(u), float(v)]})
+    for j in range(len(points)):
+        counts[j]["radius_model"] = float(np.median(det_radii[j])) if det_radii[j] else None
+    return obs, counts, rejected
+
+
+def stage_refine(store, ctx_factory, localized, per_image, settings, prev_key, progress):
+    """Pass 1: refine every candidate in every view, seeded by detections near its projection."""
+    key = [prev_key, asdict(settings)]
+
+    def compute():
+        cands = localized["candidates"]
+        C = np.array([c["center_model"] for c in cands]).reshape(-1, 3)
+        N = [None if c["normal_model"] is None else np.asarray(c["normal_model"], float) for c in cands]
+        R = np.array([c["radius_model"] for c in cands])
+        obs, counts, rejected = refine_views(ctx_factory(), C, N, R, per_image, gate=1.5, progress=progress)
+        markers = [{"candidate": j, "center_model": cands[j]["center_model"], "normal_model": cands[j]["normal_model"],
+                    "radius_model": counts[j]["radius_model"] or cands[j]["radius_model"],
+                    "observations": obs[j], "counts": counts[j]} for j in range(len(cands))]
+        return {"markers": markers, "rejected": rejected}
+
+    return store.run("refine", key, compute)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Stage 4: triangulate, refine again from the triangulated points, triangulate (and adjust)
+
+
+def _triangulate_markers(scene, markers, settings, dropped):
+    from geometry.triangulate import Observation, triangulate
+
+    out = []
+    for m in markers:
+        obs = [Observation(*_pose_cam(scene, o["image"]), np.array([o["x"], o["y"]]),
+                           max(o["sigma_px"], settings.sigma_floor_px), o["image"])
+               for o in m["observations"]]
+        res = triangulate(obs, loss=settings.loss, f_scale=settings.f_scale,
+                          outlier_sigma=settings.outlier_sigma, rng=np.random.default_rng(settings.seed))
+        if not res.ok or res.n_inliers < settings.min_views:
+            dropped.append({"candidate": m["candidate"], "reason": res.reason or
+                            f"{res.n_inliers} inlier views < {settings.min_views}"})
+            continue
+        out.append({"candidate": m["candidate"], "model_point": res.point.tolist(), "rms_px": res.rms_px,
+                    "covariance_model": res.covariance.tolist(), "max_angle_deg": res.max_angle_deg,
+                    "normal_model": m.get("normal_model"), "counts": m.get("counts"),
+                    "radius_model": m["radius_model"],
+                    "observations": [dict(o, inlier=bool(res.inliers[k]),
+                                          residual_px=np.linalg.norm(res.residuals_px[k]).item())
+                                     for k, o in enumerate(m["observations"])]})
+    return out
+
+
+def stage_triangulate(store, ctx_factory, scene, refined, localized, per_image, settings, prev_key, progress):
+    key = [prev_key, asdict(settings)]
+
+    def compute():
+        radius = float(localized["radius_model"])
+        dropped: list[dict] = []
+        first = _merge_duplicates(_triangulate_markers(scene, refined["markers"], settings, dropped), dropped)
+        # pass 2: the triangulated points project to within a pixel or so: refine in every view again
+        P = np.array([m["model_point"] for m in first]).reshape(-1, 3)
+        N = [None if m["normal_model"] is None else np.asarray(m["normal_model"], float) for m in first]
+        R = np.array([m["radius_model"] for m in first])
+        obs, counts, rejected = refine_views(ctx_factory(), P, N, R, per_image, gate=0.5, progress=progress)
+        second = [{"candidate": m["candidate"], "normal_model": m["normal_model"], "observations": obs[j],
+                   "counts": counts[j], "radius_model": counts[j]["radius_model"] or m["radius_model"]}
+                  for j, m in enumerate(first)]
+        out = _merge_duplicates(_triangulate_markers(scene, second, settings, dropped), dropped)
+        out = [m for m in out if _enough_support(m, settings, dropped)]
+        adjusted = None
+        if settings.adjust and out:
+            adjusted = _adjust(scene, out, settings, radius)
+        return {"markers": out, "dropped": dropped, "adjusted": adjusted, "rejected_views": rejected}
+
+    return store.run("triangulate", key, compute)
+
+
+def _enough_support(m, settings, dropped) -> bool:
+    """A marker must have been *detected* (not only refined) in at least two views and in at least
+    ``min_detected_fraction`` of the views where it is usable: X-corners of the scenery refine as
+    well as markers do, but the detector (which checks the whole pattern) fires on them rarely."""
+    c = m["counts"]
+    frac = c["detected"] / max(c["usable"], 1)
+    if c["detected"] >= 2 and frac >= settings.min_detected_fraction:
+        return True
+    dropped.append({"candidate": m["candidate"],
+                    "reason": f"detected in {c['detected']} of {c['usable']} usable views"})
+    return False
+
+
+def _merge_duplicates(markers, dropped):
+    """Two candidates that triangulate within one marker size are the same marker: keep the better."""
+    order = sorted(range(len(markers)), key=lambda k: -sum(o["inlier"] for o in markers[k]["observations"]))
+    kept = []
+    for k in order:
+        p = np.asarray(markers[k]["model_point"])
+        r = markers[k]["radius_model"]
+        if any(np.linalg.norm(p - np.asarray(markers[q]["model_point"])) < 2 * max(r, markers[q]["radius_model"])
+               for q in kept):
+            dropped.append({"candidate": markers[k]["candidate"], "reason": "duplicate of another candidate"})
+            continue
+        kept.append(k)
+    return [markers[k] for k in sorted(kept)]
+
+
+def _adjust(scene, markers, settings, radius):
+    from geometry.adjust import MarkerObservation, bundle_adjust
+
+    obs = [MarkerObservation(j, o["image"], np.array([o["x"], o["y"]]), max(o["sigma_px"], settings.sigma_floor_px))
+           for j, m in enumerate(markers) for o in m["observations"] if o["inlier"]]
+    names = {o.image for o in obs}
+    poses = {n: scene.images[n].cam_from_world for n in names}
+    cams = {n: scene.camera_of(n) for n in names}
+    prior_pos = settings.prior_pos if settings.prior_pos is not None else 0.4 * radius
+    res = bundle_adjust(np.array([m["model_point"] for m in markers]), obs, poses, cams,
+                        sigma_rot_rad=math.radians(settings.prior_rot_deg), sigma_pos=prior_pos,
+                        loss=settings.loss, f_scale=max(settings.f_scale, 3.0))
+    for j, m in enumerate(markers):
+        m["model_point_triangulated"] = m["model_point"]
+        m["model_point"] = res.points[j].tolist()
+        m["rms_px"] = float(res.rms_px[j])
+        m["covariance_model"] = res.covariance[j].tolist()
+    return {"success": res.success, "message": res.message, "s0": res.s0, "n_evaluations": res.n_evaluations,
+            "n_images": len(names)}
+
+
+# ----------------------------------------------------------------------------------------------------
+# Stage 5: register
+
+
+@dataclass
+class Surveyed:
+    """Surveyed points: names, coordinates in their CRS (m, 3), local metric coordinates (m, 3)."""
+
+    names: list[str]
+    xyz: np.ndarray
+    local: np.ndarray
+    crs: Optional[str]
+    frame: Any = None  # geometry.crs.LocalFrame or None
+
+
+def load_surveyed(path: Path, crs: Optional[str]) -> Surveyed:
+    """Read gcps.csv and express the points in a local Cartesian frame (metres).
+
+    ``crs``: the CRS of the coordinates when the file does not name one (None: plain Cartesian metres).
+    """
+    names, xyz, file_crs = _read_points(Path(path))
+    crs_text = file_crs or crs
+    from geometry.crs import CRSInputError, LocalFrame, crs_from_user
+
+    try:
+        frame = LocalFrame.from_points(xyz, None if crs_text is None else crs_from_user(crs_text))
+        local = frame.to_local(xyz)
+    except CRSInputError as exc:
+        raise InputError(str(exc), path) from None
+    return Surveyed(names, xyz, np.asarray(local, float), None if crs_text is None else str(crs_text), frame)
+
+
+def _read_points(path: Path) -> tuple[list[str], np.ndarray, Optional[str]]:
+    """(names, xyz (m, 3), crs named by the file or None) of a surveyed-points CSV."""
+    from .formats.points_csv import read_points_csv
+
+    pts = read_points_csv(path, min_points=3, what="surveyed points")
+    return list(pts.names), np.asarray(pts.xyz, float).reshape(-1, 3), getattr(pts, "crs", None)
+
+
+def stage_register(store, triangulated, surveyed: Surveyed, settings, prev_key, gcps_key):
+    key = [prev_key, gcps_key, surveyed.crs, asdict(settings)]
+
+    def compute():
+        from geometry.registration import RegistrationConfig, register_points
+
+        markers = triangulated["markers"]
+        det = np.array([m["model_point"] for m in markers]).reshape(-1, 3)
+        cfg = RegistrationConfig(noise=settings.registration_noise_m)
+        res = register_points(det, surveyed.local, rng=np.random.default_rng(settings.seed), config=cfg)
+        return {"status": res.status, "reason": res.reason,
+                "world_from_model": None if res.world_from_model is None else res.world_from_model.to_dict(),
+                "pairs": [{"detected": p.detected, "surveyed": p.surveyed, "residual_m": p.residual}
+                          for p in res.pairs],
+                "rms_m": res.rms_m, "sigma_m": res.sigma_m, "tolerance_m": res.tolerance_m,
+                "hypotheses_tried": res.hypotheses_tried, "chance_probability": res.chance_probability,
+                "n_alternatives": len(res.alternatives), "seconds": res.seconds}
+
+    return store.run("register", key, compute)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Export
+
+
+def _finite(x):
+    """JSON-safe: NaN/inf -> None, recursively."""
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    return x
+
+
+def build_report(settings, inputs, localized, triangulated, registered, surveyed: Surveyed, stages) -> dict:
+    from geometry.transforms import Sim3
+
+    wfm = None if registered["world_from_model"] is None else Sim3.from_dict(registered["world_from_model"])
+    pair_of = {p["detected"]: p for p in registered["pairs"]}
+    markers = []
+    for k, m in enumerate(triangulated["markers"]):
+        entry = {"id": f"M{k + 1:03d}", "model_point": m["model_point"], "rms_px": m["rms_px"],
+                 "covariance_model": m["covariance_model"],
+                 "n_views": sum(o["inlier"] for o in m["observations"]),
+                 "observations": [{"image": o["image"], "x": o["x"], "y": o["y"], "sigma_px": o["sigma_px"],
+                                   "inlier": o["inlier"], "residual_px": o["residual_px"]}
+                                  for o in m["observations"]],
+                 "surveyed_name": None, "residual_m": None}
+        if wfm is not None:
+            local = wfm(np.asarray(m["model_point"]))
+            entry["local_point"] = local.tolist()
+            if surveyed.frame is not None:
+                entry["crs_point"] = np.asarray(surveyed.frame.from_local(local[None])).reshape(3).tolist()
+        if k in pair_of and registered["status"] in ("ok", "ambiguous"):
+            s = pair_of[k]["surveyed"]
+            entry["surveyed_name"] = surveyed.names[s]
+            entry["residual_m"] = (wfm(np.asarray(m["model_point"])) - surveyed.local[s]).tolist()
+        markers.append(entry)
+    paired = [m for m in markers if m["surveyed_name"] is not None]
+    status = registered["status"] if registered["status"] != "ok" else ("ok" if len(paired) >= 3 else "failed")
+    report = {
+        "format": REPORT_FORMAT, "status": status, "reason": registered.get("reason", ""),
+        "detector": settings.detector, "mode": localized["mode"], "crs": surveyed.crs,
+        "local_frame": None if surveyed.frame is None else _frame_dict(surveyed.frame),
+        "world_from_model": registered["world_from_model"],
+        "world_frame": "local Cartesian frame of the surveyed points (metres; see local_frame)",
+        "rms_m": registered["rms_m"], "n_markers": len(markers), "n_paired": len(paired),
+        "n_surveyed": len(surveyed.names),
+        "unpaired_surveyed": sorted(set(surveyed.names) - {m["surveyed_name"] for m in paired}),
+        "markers": markers, "settings": asdict(settings),
+        "inputs": {k: (None if v is None else str(v)) for k, v in asdict(inputs).items()},
+        "stages": stages,
+    }
+    return _finite(report)
+
+
+def _frame_dict(frame) -> dict:
+    for attr in ("to_dict",):
+        if hasattr(frame, attr):
+            return getattr(frame, attr)()
+    return {"repr": repr(frame)}
+
+
+def export(report: dict, out: Path, surveyed: Surveyed, scene) -> None:
+    """report.json, gcp_list.txt (ODM) and markers.xml (Metashape) in ``out``."""
+    out = Path(out)
+    write_json_atomic(out / "report.json", report)
+    paired = [m for m in report["markers"] if m["surveyed_name"] is not None]
+    if not paired or report["status"] not in ("ok", "ambiguous"):
+        for stale in ("gcp_list.txt", "markers.xml"):
+            (out / stale).unlink(missing_ok=True)
+        return
+    idx = {n: k for k, n in enumerate(surveyed.names)}
+    if surveyed.crs is not None:
+        from .formats.odm import GcpObservation, write_gcp_list
+
+        obs = [GcpObservation(surveyed.xyz[idx[m["surveyed_name"]]], o["x"], o["y"], o["image"],
+                              m["surveyed_name"])
+               for m in paired for o in m["observations"] if o["inlier"]]
+        write_gcp_list(out / "gcp_list.txt", surveyed.crs, obs)
+    from .formats.metashape import MarkerRecord, write_metashape_markers
+
+    records = []
+    for m in report["markers"]:
+        ref = None if m["surveyed_name"] is None else surveyed.xyz[idx[m["surveyed_name"]]]
+        label = m["surveyed_name"] or m["id"]
+        records.append(MarkerRecord(label, ref, {o["image"]: (o["x"], o["y"])
+                                                 for o in m["observations"] if o["inlier"]}))
+    write_metashape_markers(out / "markers.xml", records, scene=scene, crs=surveyed.crs)
+
+
+# ----------------------------------------------------------------------------------------------------
+# The whole run
+
+
+def run_georef(inputs: GeorefInputs, settings: GeorefSettings = GeorefSettings(),
+               progress: Callable = lambda it, **kw: it) -> dict:
+    """Run (or resume) every stage and export; returns the report (also in ``inputs.out/report.json``)."""
+    t0 = time.perf_counter()
+    out = Path(inputs.out)
+    store = StageStore(out)
+    if not Path(inputs.gcps).is_file():
+        raise InputError("surveyed points file not found", inputs.gcps)
+    for p, what in ((inputs.cloud, "point cloud"), (inputs.mesh, "mesh")):
+        if p is not None and not Path(p).is_file():
+            raise InputError(f"{what} not found", p)
+    scene = load_scene(Path(inputs.reconstruction))
+    surveyed = load_surveyed(Path(inputs.gcps), inputs.crs)
+    image_paths = _image_paths(scene, Path(inputs.images))
+    recon_key = _file_key(Path(inputs.reconstruction))
+
+    per_image, k1 = stage_detect(store, scene, image_paths, settings, progress)
+    k1 = _hash([k1, recon_key])
+    write_detections_json(out / "detections.json", settings.detector, per_image)
+    localized, k2 = stage_localize(store, scene, per_image, settings, inputs, k1, progress)
+    ctx_cache: list = []
+
+    def ctx_factory():
+        if not ctx_cache:
+            ctx_cache.append(_ViewContext(scene, image_paths, settings, inputs))
+        return ctx_cache[0]
+
+    k2b = _hash([k2, _file_key(inputs.mesh), _file_key(inputs.cloud)])
+    refined, k3 = stage_refine(store, ctx_factory, localized, per_image, settings, k2b, progress)
+    triangulated, k4 = stage_triangulate(store, ctx_factory, scene, refined, localized, per_image, settings, k3,
+                                         progress)
+    registered, _ = stage_register(store, triangulated, surveyed, settings, k4,
+                                   _hash(Path(inputs.gcps).read_bytes().hex()))
+    stages = {"ran": store.ran, "skipped": store.skipped, "seconds": round(time.perf_counter() - t0, 2),
+              "candidates": len(localized["candidates"]), "refine_rejected": refined["rejected"],
+              "dropped": triangulated["dropped"], "adjusted": triangulated["adjusted"]}
+    report = build_report(settings, inputs, localized, triangulated, registered, surveyed, stages)
+    export(report, out, surveyed, scene)
+    return report
