@@ -300,3 +300,21 @@ def test_cli_bad_input_is_one_line_exit_2(tmp_path, capsys, content, crs, expect
     err = capsys.readouterr().err.strip()
     assert expect in err and len(err.splitlines()) == 1
     assert not (tmp_path / "reg.json").exists()
+
+
+def test_cli_reads_metashape_markers_with_chunk_crs(tmp_path):
+    from cpdetect.formats.metashape import MarkerRecord, write_metashape_markers
+
+    rng = np.random.default_rng(17)
+    sur = site(rng, 10) + [512000.0, 5781000.0, 80.0]
+    prob = simulate_detections(sur, rng, n_seen=8, n_false=1, noise=0.005)
+    write_csv(tmp_path / "det.csv", "id,x,y,z", range(len(prob.detected)), prob.detected)
+    write_metashape_markers(tmp_path / "markers.xml", [MarkerRecord(f"M{i}", p) for i, p in enumerate(sur)],
+                            crs="EPSG:32632")
+    out = tmp_path / "reg.json"
+    rc = cli_main(["register", "--detected", str(tmp_path / "det.csv"), "--surveyed", str(tmp_path / "markers.xml"),
+                   "--out", str(out)])
+    d = json.loads(out.read_text())
+    assert rc == 0 and d["status"] == "ok" and d["world"] == "local_frame"
+    assert d["local_frame"]["crs"] == "EPSG:32632"
+    assert {p["detected"]: p["surveyed"] for p in d["pairs"]} == {str(i): f"M{j}" for i, j in prob.true_pairing().items()}

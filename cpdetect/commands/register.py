@@ -25,7 +25,8 @@ def register(sub) -> None:
                        description=__doc__.splitlines()[0])
     p.add_argument("--detected", required=True, help="CSV id,x,y,z of detected marker points (model frame)")
     p.add_argument("--surveyed", required=True,
-                   help="surveyed points: CSV name,x,y,z, or an ODM gcp_list.txt (its header gives the CRS)")
+                   help="surveyed points: CSV name,x,y,z; an ODM gcp_list.txt (its header gives the CRS); "
+                        "or Metashape markers .xml (chunk CRS)")
     p.add_argument("--crs", help="CRS of the surveyed coordinates, e.g. EPSG:32632 (fit in a local ENU frame)")
     p.add_argument("--tolerance", type=float, default=None,
                    help="inlier distance in metres (default: 6 x --noise, adapted to the residuals)")
@@ -56,6 +57,21 @@ def _read_surveyed(path: Path, crs_text: str | None):
         if crs is not None and gcps.crs is not None and not crs.equals(gcps.crs):
             raise UsageError(f"--crs {crs_text} disagrees with the CRS in the header of {path} ({gcps.header})")
         return list(pts), np.array(list(pts.values()), dtype=np.float64).reshape(-1, 3), crs or gcps.crs
+    if path.suffix.lower() == ".xml":
+        from ..formats.metashape import read_metashape_markers
+
+        markers = read_metashape_markers(path)
+        pts = markers.survey_points()
+        file_crs = None
+        wkt = (markers.crs_wkt or "").strip()
+        if wkt and not wkt.upper().startswith("LOCAL_CS"):
+            try:
+                file_crs = crs_from_user(wkt)
+            except CRSInputError as exc:
+                raise InputError(f"chunk CRS: {exc}", path) from None
+        if crs is not None and file_crs is not None and not crs.equals(file_crs):
+            raise UsageError(f"--crs {crs_text} disagrees with the chunk CRS of {path} ({file_crs.name})")
+        return list(pts), np.array(list(pts.values()), dtype=np.float64).reshape(-1, 3), crs or file_crs
     from ..formats.points_csv import read_points_csv
 
     table = read_points_csv(path, min_points=3, what="surveyed points")
