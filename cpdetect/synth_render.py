@@ -77,6 +77,12 @@ class ImageEffects:
                             blur_sigma=float(rng.uniform(0.3, 0.9)), noise_sigma=float(rng.uniform(1.0, 3.5)))
 
 
+def transform_points(pose: Rigid3, points: np.ndarray) -> np.ndarray:
+    """``pose(points)`` for (n, 3) points; einsum, because BLAS matmul of (n, 3) x (3, 3) is slow
+    when its threads compete for a busy machine."""
+    return np.einsum("ij,kj->ki", pose.R, points) + pose.t
+
+
 def sample_texture(tex: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Bilinear lookup (n, 3) in ``tex`` (h, w, 3) at texel coordinates x, y (texel centres at integers),
     mirror-repeated beyond the image so tiles join without seams."""
@@ -215,7 +221,7 @@ class SiteRenderer:
         pier = code >= 0
         normals[pier] = self._normal[code[pier]]
         normals[code == GROUND] = (0.0, 0.0, 1.0)
-        lam = np.clip(normals @ app.sun, 0.0, None)
+        lam = np.clip(np.einsum("ij,j->i", normals, app.sun), 0.0, None)
         s = (app.ambient + app.diffuse * lam).astype(np.float32)
         s[code == MISS] = 1.0
         return s
@@ -268,7 +274,7 @@ class SiteRenderer:
                 d_cam = self.camera_rays(camera, np.column_stack([KX.ravel(), KY.ravel()]))
                 if cacheable:
                     ray_cache[key] = d_cam
-            rgb, lab = self.radiance(origin, d_cam @ R)  # rows: R^T d
+            rgb, lab = self.radiance(origin, np.einsum("ij,jk->ik", d_cam, R))  # rows: R^T d
             k_rgb, k_lab = rgb.reshape(nb + 1, w + 1, 3), lab.reshape(nb + 1, w + 1)
             band = 0.25 * (k_rgb[:-1, :-1] + k_rgb[:-1, 1:] + k_rgb[1:, :-1] + k_rgb[1:, 1:])
             c = k_lab[:-1, :-1]
@@ -279,7 +285,7 @@ class SiteRenderer:
                 yy, xx = my[k:k + chunk], mx[k:k + chunk]
                 pxy = np.stack([xx + 0.0, yy + r0 + 0.0], axis=1)
                 sxy = (pxy[:, None, :] + sub[None]).reshape(-1, 2)
-                srgb, _ = self.radiance(origin, self.camera_rays(camera, sxy) @ R)
+                srgb, _ = self.radiance(origin, np.einsum("ij,jk->ik", self.camera_rays(camera, sxy), R))
                 band[yy, xx] = srgb.reshape(len(yy), len(sub), 3).mean(axis=1)
             out[r0:r1] = band
             if progress is not None:
@@ -301,7 +307,7 @@ class SiteRenderer:
         ok = cosang >= math.cos(math.radians(max_angle_deg))
         idx = np.nonzero(ok)[0]
         if idx.size:
-            uv, front = camera.project(cam_from_site(points[idx]))
+            uv, front = camera.project(transform_points(cam_from_site, points[idx]))
             ok[idx] = front & camera.in_image(uv, border=border_px)
         idx = np.nonzero(ok)[0]
         if idx.size:
@@ -339,4 +345,51 @@ def apply_effects(image: np.ndarray, effects: ImageEffects, rng: np.random.Gener
     return out
 
 
-__all__ = ["Appearance", "ImageEffects", "SiteRenderer", "sample_texture", "apply_effects", "MISS", "GROUND"]
+def fit_xcorner(image: np.ndarray, guess: tuple[float, float], radius: float, inner: float = 1.5
+                ) -> np.ndarray:
+    """Measure an X-corner (two straight edges crossing, opposite sectors alike) in a float gray image,
+    independently of any projection model: a least-squares fit of two lines through a common point,
+    with Gaussian-blurred (sigma fitted) edges, to the pixels between ``inner`` and ``radius`` pixels
+    of ``guess``. Used to check that rendered marker centres sit where the cameras project them.
+
+    Every marker type is such a corner near its aiming point, under any perspective; ``radius`` must
+    stay inside the printed pattern. Returns (x, y) in OpenCV pixels.
+    """
+    from scipy.optimize import least_squares
+    from scipy.special import ndtr
+
+    gx, gy = float(guess[0]), float(guess[1])
+    r = int(np.ceil(radius)) + 1
+    x0, y0 = int(round(gx)), int(round(gy))
+    ys, xs = np.mgrid[y0 - r:y0 + r + 1, x0 - r:x0 + r + 1]
+    if ys.min() < 0 or xs.min() < 0 or ys.max() >= image.shape[0] or xs.max() >= image.shape[1]:
+        raise ValueError("fit window leaves the image")
+    vals = np.asarray(image, float)[ys, xs]
+    rr = np.hypot(xs - gx, ys - gy)
+    sel = (rr <= radius) & (rr >= inner)
+    X, Y, V = xs[sel].astype(float), ys[sel].astype(float), vals[sel]
+
+    def model(p):
+        cx, cy, t1, t2, a, b, s = p
+        p1 = ndtr(((X - cx) * np.sin(t1) - (Y - cy) * np.cos(t1)) / s)
+        p2 = ndtr(((X - cx) * np.sin(t2) - (Y - cy) * np.cos(t2)) / s)
+        return b + (a - b) * (p1 * p2 + (1 - p1) * (1 - p2))
+
+    lo, hi = np.percentile(V, 5), np.percentile(V, 95)
+    angles = np.deg2rad(np.arange(0.0, 180.0, 6.0))
+    best = None
+    for i, t1 in enumerate(angles):  # coarse search of the two edge directions
+        for t2 in angles[i + 1:]:
+            for a, b in ((lo, hi), (hi, lo)):
+                p = (gx, gy, t1, t2, a, b, 0.4)
+                e = float(np.sum((model(p) - V) ** 2))
+                if best is None or e < best[0]:
+                    best = (e, p)
+    res = least_squares(lambda p: model(p) - V, best[1],
+                        x_scale=[0.1, 0.1, 0.01, 0.01, 0.05, 0.05, 0.05],
+                        bounds=([gx - 3, gy - 3, -10, -10, -2, -2, 0.1], [gx + 3, gy + 3, 10, 10, 3, 3, 3]))
+    return res.x[:2].copy()
+
+
+__all__ = ["Appearance", "ImageEffects", "SiteRenderer", "sample_texture", "apply_effects", "fit_xcorner",
+           "transform_points", "MISS", "GROUND"]

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .markers import MarkerSpec
+from .types import MARKER_TYPES
 
 
 @dataclass(frozen=True)
@@ -304,7 +305,8 @@ def candidate_points(mesh: PierMesh, rng: np.random.Generator, n: int, kinds=("s
     for fi in np.unique(faces):
         sel = np.nonzero(faces == fi)[0]
         tris = mesh.face_triangles(int(fi))
-        ta = np.abs(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]))
+        e1, e2 = tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]
+        ta = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
         t = rng.choice(len(tris), size=len(sel), p=ta / ta.sum())
         r1, r2 = rng.random(len(sel)), rng.random(len(sel))
         flip = r1 + r2 > 1
@@ -326,8 +328,6 @@ def place_markers(mesh: PierMesh, request: PlacementRequest, rng: np.random.Gene
     until no similarity maps it onto a permutation of itself within ``asymmetry_m`` metres.
     Raises ValueError when no valid layout is found (e.g. too many markers for the covered area).
     """
-    from .types import MARKER_TYPES
-
     roles = (["regular"] * request.regular + ["unsurveyed"] * request.unsurveyed
              + ["missing"] * request.missing + ["hidden"] * request.hidden)
     types: list[str] = []
