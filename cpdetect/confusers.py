@@ -137,7 +137,7 @@ def draw_holes(rng: np.random.Generator, size: int) -> Patch:
     soft = rng.uniform(0.0, 0.03) * size
     if soft > 0.3:
         a = cv2.GaussianBlur(a, (0, 0), soft)
-    alpha[:] = a
+    alpha[:] = np.clip(a, 0.0, 1.0)
     return img, alpha
 
 

@@ -556,7 +556,8 @@ def write_synth_images(out: str | os.PathLike, n: int, seed: int, opt: SynthImag
     else:
         import multiprocessing as mp
 
-        ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
+        # spawn, not fork: forking a process whose OpenCV/OpenMP thread pools already run can deadlock
+        ctx = mp.get_context("spawn")
         with ctx.Pool(workers, initializer=_worker_init, initargs=(seed, opt, str(out))) as pool:
             for k, rec in enumerate(pool.imap(_worker_make, range(n), chunksize=4)):
                 records.append(rec)

@@ -1,0 +1,185 @@
+"""Synthetic marker images: determinism, truth consistent with pixels and masks, knobs respected."""
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from cpdetect.backgrounds import BackgroundLibrary, list_backgrounds
+from cpdetect.cli import main
+from cpdetect.confusers import CONFUSER_KINDS, draw_confuser
+from cpdetect.dataset import load_dataset, read_mask
+from cpdetect.synth_images import SynthImageOptions, generate_image, write_synth_images
+from cpdetect.types import MARKER_TYPES
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def lib():
+    return BackgroundLibrary(list_backgrounds())
+
+
+@pytest.fixture(scope="module")
+def samples(lib):
+    opt = SynthImageOptions()
+    return opt, [generate_image(i, 5, opt, lib) for i in range(40)]
+
+
+def test_same_seed_gives_identical_files_and_n_is_a_prefix(tmp_path):
+    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    assert main(["-q", "synth", "images", "--out", str(a), "--n", "6", "--seed", "1"]) == 0
+    assert main(["-q", "synth", "images", "--out", str(b), "--n", "6", "--seed", "1", "--workers", "2"]) == 0
+    assert main(["-q", "synth", "images", "--out", str(c), "--n", "3", "--seed", "1"]) == 0
+    fa, fb, fc = _files(a), _files(b), _files(c)
+    assert fa == fb  # serial and parallel runs: byte-identical, markers.json included
+    assert len([k for k in fa if k.startswith("images/")]) == 6
+    for k, v in fc.items():
+        if k != "markers.json":
+            assert fa[k] == v
+    ja, jc = json.loads(fa["markers.json"]), json.loads(fc["markers.json"])
+    assert ja["images"][:3] == jc["images"]
+    d = tmp_path / "d"
+    main(["-q", "synth", "images", "--out", str(d), "--n", "3", "--seed", "2"])
+    assert _files(d)["images/000000.jpg"] != fa["images/000000.jpg"]
+
+
+def test_written_set_loads_and_masks_match_images(tmp_path):
+    write_synth_images(tmp_path, 4, 7, SynthImageOptions(width=320, height=240, image_format="png"))
+    ds = load_dataset(tmp_path)
+    assert [im.file for im in ds.images] == [f"images/{i:06d}.png" for i in range(4)]
+    doc = json.loads((tmp_path / "markers.json").read_text())
+    assert doc["generator"]["seed"] == 7 and doc["backgrounds"]
+    assert all(b["attribution"] for b in doc["backgrounds"])
+    for im in ds.images:
+        img = cv2.imread(str(tmp_path / im.file))
+        assert img.shape == (240, 320, 3)
+        mask = read_mask(tmp_path / im.mask, shape=img.shape[:2])
+        assert mask.dtype == bool
+        assert im.meta["background"] and im.meta["category"]
+        raw = cv2.imread(str(tmp_path / im.mask), cv2.IMREAD_UNCHANGED)
+        assert set(np.unique(raw)) <= {0, 255}
+
+
+def test_markers_inside_image_within_radius_range_and_apart(samples):
+    opt, items = samples
+    radii, types, counts, tilts = [], set(), [], []
+    for s in items:
+        counts.append(len(s.markers))
+        for m in s.markers:
+            assert 0 <= m.x <= opt.width - 1 and 0 <= m.y <= opt.height - 1
+            assert opt.radius_min_px - 1e-6 <= m.radius_px <= opt.radius_max_px + 1e-6
+            assert 0 <= m.extra["tilt_deg"] <= opt.tilt_max_deg + 1e-6
+            radii.append(m.radius_px)
+            types.add(m.type)
+            tilts.append(m.extra["tilt_deg"])
+        for i, p in enumerate(s.markers):
+            for q in s.markers[i + 1:]:
+                assert np.hypot(p.x - q.x, p.y - q.y) > p.radius_px + q.radius_px
+    assert types == set(MARKER_TYPES)
+    assert 0 in counts and max(counts) <= opt.markers[1]
+    assert min(radii) < 12 and max(radii) > 40  # the size range is actually used
+    assert max(tilts) > 40
+
+
+def test_mask_area_matches_radius_for_unoccluded_markers(samples):
+    opt, items = samples
+    checked = 0
+    for s in items:
+        n, lab = cv2.connectedComponents((s.mask > 0).astype(np.uint8), connectivity=8)
+        centre_labels = set()
+        for m in s.markers:
+            lab_c = lab[int(round(m.y)), int(round(m.x))]
+            if m.extra["occluded_frac"] > 0:
+                continue
+            assert lab_c > 0, "the aiming point of an unoccluded marker is a marker pixel"
+            area = np.count_nonzero(lab == lab_c)
+            assert 0.95 < area / (np.pi * m.radius_px ** 2) < 1.05
+            centre_labels.add(lab_c)
+            checked += 1
+        if all(m.extra["occluded_frac"] == 0 for m in s.markers):
+            # no mask pixel away from a marker (confusers are not markers)
+            assert set(range(1, n)) == centre_labels
+    assert checked > 30
+
+
+def test_truth_is_where_the_pixels_put_the_x_corner(lib):
+    """An independent sub-pixel corner finder on clean renderings lands on the recorded centre."""
+    opt = SynthImageOptions(tilt_max_deg=30, radius_min_px=15, margin_prob=1.0, texture_prob=0,
+                            occlusion_prob=0, shadow_prob=0, defocus_prob=0, motion_prob=0,
+                            noise_read=(0.5, 0.5), noise_gain=0, confusers=(0, 0), contrast=(150, 200),
+                            gradient_max=0.0)
+    errs = []
+    for i in range(12):
+        s = generate_image(i, 2, opt, lib)
+        g = cv2.cvtColor(s.image, cv2.COLOR_BGR2GRAY).astype(np.float32)
+        for m in s.markers:
+            c = np.array([[[round(m.x), round(m.y)]]], np.float32)
+            cv2.cornerSubPix(g, c, (5, 5), (-1, -1), (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4))
+            errs.append(np.hypot(c[0, 0, 0] - m.x, c[0, 0, 1] - m.y))
+    errs = np.array(errs)
+    assert len(errs) >= 15
+    assert np.max(errs) < 0.15
+    assert np.median(errs) > 1e-3  # noise and JPEG-free quantisation still leave a trace
+
+
+def test_occlusion_removes_mask_pixels(lib):
+    opt = SynthImageOptions(occlusion_prob=1.0, occlusion_max=0.4, radius_min_px=20, confusers=(0, 0))
+    fracs = []
+    yy, xx = np.mgrid[0:opt.height, 0:opt.width]
+    for i in range(8):
+        s = generate_image(i, 3, opt, lib)
+        for m in s.markers:
+            f = m.extra["occluded_frac"]
+            assert 0.0 <= f <= 0.4
+            alone = all(np.hypot(q.x - m.x, q.y - m.y) > 3 * (m.radius_px + q.radius_px)
+                        for q in s.markers if q is not m)
+            if f > 0 and alone:
+                fracs.append(f)
+                area = np.count_nonzero(s.mask[np.hypot(xx - m.x, yy - m.y) < 3 * m.radius_px])
+                assert 0.97 < area / (np.pi * m.radius_px ** 2 * (1 - f)) < 1.03
+    assert len(fracs) >= 4 and max(fracs) > 0.2
+
+
+def test_held_out_split_is_fixed_and_disjoint():
+    train, test, every = list_backgrounds("train"), list_backgrounds("test"), list_backgrounds("all")
+    assert {b.file for b in train}.isdisjoint({b.file for b in test})
+    assert len(train) + len(test) == len(every)
+    assert 0.12 < len(test) / len(every) < 0.3
+    assert {b.category for b in test} == {b.category for b in every}
+    assert [b.file for b in list_backgrounds("test")] == [b.file for b in test]
+
+
+def test_split_option_uses_only_those_backgrounds(lib):
+    test_files = {b.file for b in list_backgrounds("test")}
+    opt = SynthImageOptions(split="test")
+    lib_t = BackgroundLibrary(list_backgrounds("test"))
+    assert {generate_image(i, 0, opt, lib_t).meta["background"] for i in range(10)} <= test_files
+
+
+@pytest.mark.parametrize("kind", CONFUSER_KINDS)
+def test_confusers_are_valid_patches(kind):
+    rng = np.random.default_rng(0)
+    for size in (12, 77):
+        img, alpha = draw_confuser(kind, rng, size)
+        assert img.shape == (size, size, 3) and alpha.shape == (size, size)
+        assert img.dtype == np.float32 and alpha.dtype == np.float32
+        assert 0.0 <= alpha.min() and alpha.max() <= 1.0 and alpha.max() > 0.5
+        assert np.isfinite(img).all()
+
+
+@pytest.mark.parametrize("kwargs", [dict(width=10), dict(markers=(3, 1)), dict(tilt_max_deg=89),
+                                    dict(image_format="gif"), dict(split="val"), dict(radius_min_px=100)])
+def test_bad_options_raise(kwargs):
+    with pytest.raises(ValueError):
+        SynthImageOptions(**kwargs)
+
+
+@pytest.mark.parametrize("argv", [["--size", "640by480"], ["--markers", "4-1"], ["--n", "-1"]])
+def test_cli_bad_arguments_one_line(tmp_path, capsys, argv):
+    rc = main(["synth", "images", "--out", str(tmp_path / "x")] + argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "error" in err[0]
