@@ -118,10 +118,26 @@ class GeorefInputs:
     crs: Optional[str] = None
     cloud: Optional[Path] = None
     mesh: Optional[Path] = None
+    detections: Optional[Path] = None  # a cpdetect.detections/1 file to use instead of running the detector
 
 
 # ----------------------------------------------------------------------------------------------------
 # Stage bookkeeping
+
+# the settings each stage depends on (a stage's key holds these and the key of the stage before it)
+_STAGE_FIELDS = {
+    "localize": ("mode", "min_score", "cloud_threshold", "prob_max_side", "depth_max_side", "seed"),
+    "refine": ("min_score", "depth_max_side", "min_radius_px", "max_obliquity_deg", "refine_method"),
+    "triangulate": ("min_score", "depth_max_side", "min_radius_px", "max_obliquity_deg", "refine_method",
+                    "sigma_floor_px", "loss", "f_scale", "outlier_sigma", "min_views", "min_detected_fraction",
+                    "adjust", "prior_rot_deg", "prior_pos", "seed"),
+    "register": ("registration_noise_m", "seed"),
+}
+
+
+def _stage_settings(settings: "GeorefSettings", stage: str) -> dict:
+    return {k: getattr(settings, k) for k in _STAGE_FIELDS[stage]}
+
 
 
 def _hash(obj: Any) -> str:
@@ -298,6 +314,30 @@ def stage_detect(store: StageStore, scene, image_paths: dict[str, Path], setting
         per_image[name] = data
     data, key = store.run("detect", keys, lambda: per_image)
     return data, key
+
+
+def load_detections_json(path: Path, image_paths: dict[str, Path]) -> dict:
+    """Per-image detections from a ``cpdetect.detections/1`` file (images it lacks have none)."""
+    from .types import MarkerDetection
+
+    doc = read_json(path, "detections file")
+    if not isinstance(doc, dict) or doc.get("format") != DETECTIONS_FORMAT:
+        raise InputError(f"not a {DETECTIONS_FORMAT} file (format {doc.get('format') if isinstance(doc, dict) else None!r})",
+                         path)
+    per_image = {}
+    for k, im in enumerate(doc.get("images", [])):
+        try:
+            name = str(im["file"])
+            dets = [MarkerDetection.from_dict(d).to_dict() for d in im["detections"]]
+            per_image[name] = {"width": int(im["width"]), "height": int(im["height"]), "detections": dets,
+                               "probability": None, "seconds": 0.0}
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"image entry {k}: {exc}", path) from None
+    unknown = sorted(set(per_image) - set(image_paths))
+    if unknown and len(unknown) == len(per_image):
+        raise InputError(f"no image of the reconstruction is named in it (e.g. {unknown[0]!r})", path)
+    return {n: per_image.get(n, {"width": 0, "height": 0, "detections": [], "probability": None, "seconds": 0.0})
+            for n in image_paths}
 
 
 def write_detections_json(path: Path, detector: str, per_image: dict) -> None:
@@ -493,7 +533,7 @@ def stage_localize(store, scene, per_image, settings, inputs: GeorefInputs, prev
     if mode == "ray" and not inputs.mesh:
         raise UsageError("mode 'ray' needs --mesh")
     key = [prev_key, mode, _file_key(inputs.cloud) if mode == "cloud" else None, _file_key(inputs.mesh),
-           asdict(settings)]
+           _stage_settings(settings, "localize")]
 
     def compute():
         mesh_rc = _load_mesh_scene(inputs.mesh)
@@ -608,7 +648,7 @@ def refine_views(ctx: _ViewContext, points: np.ndarray, normals: list, radii: np
 
 def stage_refine(store, ctx_factory, localized, per_image, settings, prev_key, progress):
     """Pass 1: refine every candidate in every view, seeded by detections near its projection."""
-    key = [prev_key, asdict(settings)]
+    key = [prev_key, _stage_settings(settings, "refine")]
 
     def compute():
         cands = localized["candidates"]
@@ -653,7 +693,7 @@ def _triangulate_markers(scene, markers, settings, dropped):
 
 
 def stage_triangulate(store, ctx_factory, scene, refined, localized, per_image, settings, prev_key, progress):
-    key = [prev_key, asdict(settings)]
+    key = [prev_key, _stage_settings(settings, "triangulate")]
 
     def compute():
         radius = float(localized["radius_model"])
@@ -767,7 +807,7 @@ def _read_points(path: Path) -> tuple[list[str], np.ndarray, Optional[str]]:
 
 
 def stage_register(store, triangulated, surveyed: Surveyed, settings, prev_key, gcps_key):
-    key = [prev_key, gcps_key, surveyed.crs, asdict(settings)]
+    key = [prev_key, gcps_key, surveyed.crs, _stage_settings(settings, "register")]
 
     def compute():
         from geometry.registration import RegistrationConfig, register_points
@@ -827,13 +867,16 @@ def build_report(settings, inputs, localized, triangulated, registered, surveyed
             entry["residual_m"] = (wfm(np.asarray(m["model_point"])) - surveyed.local[s]).tolist()
         markers.append(entry)
     paired = [m for m in markers if m["surveyed_name"] is not None]
+    crs_from_model = _crs_from_model(wfm, triangulated["markers"], surveyed)
     status = registered["status"] if registered["status"] != "ok" else ("ok" if len(paired) >= 3 else "failed")
     report = {
         "format": REPORT_FORMAT, "status": status, "reason": registered.get("reason", ""),
-        "detector": settings.detector, "mode": localized["mode"], "crs": surveyed.crs,
+        "detector": settings.detector if inputs.detections is None else f"detections from {Path(inputs.detections).name}",
+        "mode": localized["mode"], "crs": surveyed.crs,
         "local_frame": None if surveyed.frame is None else _frame_dict(surveyed.frame),
         "world_from_model": registered["world_from_model"],
         "world_frame": "local Cartesian frame of the surveyed points (metres; see local_frame)",
+        "crs_from_model": crs_from_model,
         "rms_m": registered["rms_m"], "n_markers": len(markers), "n_paired": len(paired),
         "n_surveyed": len(surveyed.names),
         "unpaired_surveyed": sorted(set(surveyed.names) - {m["surveyed_name"] for m in paired}),
@@ -842,6 +885,26 @@ def build_report(settings, inputs, localized, triangulated, registered, surveyed
         "stages": stages,
     }
     return _finite(report)
+
+
+def _crs_from_model(wfm, markers, surveyed: Surveyed) -> Optional[dict]:
+    """The similarity from the model frame straight to the surveyed CRS' coordinates, fitted on the
+    markers (exact for a Cartesian CRS; for a projected CRS it absorbs the map projection's scale and
+    convergence over the site, ``fit_rms_m`` says how well)."""
+    if wfm is None or surveyed.frame is None or len(markers) < 3:
+        return None
+    from geometry.similarity import fit_similarity
+
+    model = np.array([m["model_point"] for m in markers])
+    crs_pts = np.asarray(surveyed.frame.from_local(wfm(model)))
+    offset = np.round(crs_pts.mean(0))
+    fit = fit_similarity(model, crs_pts - offset)
+    if not fit:
+        return None
+    from geometry.transforms import Sim3
+
+    sim = Sim3(fit.sim.scale, fit.sim.R, fit.sim.t + offset)
+    return dict(sim.to_dict(), fit_rms_m=float(fit.rms), crs=surveyed.crs)
 
 
 def _frame_dict(frame) -> dict:
@@ -899,7 +962,11 @@ def run_georef(inputs: GeorefInputs, settings: GeorefSettings = GeorefSettings()
     image_paths = _image_paths(scene, Path(inputs.images))
     recon_key = _file_key(Path(inputs.reconstruction))
 
-    per_image, k1 = stage_detect(store, scene, image_paths, settings, progress)
+    if inputs.detections is not None:
+        per_image = load_detections_json(Path(inputs.detections), image_paths)
+        k1 = _hash(["detections-file", _file_key(Path(inputs.detections))])
+    else:
+        per_image, k1 = stage_detect(store, scene, image_paths, settings, progress)
     k1 = _hash([k1, recon_key])
     write_detections_json(out / "detections.json", settings.detector, per_image)
     localized, k2 = stage_localize(store, scene, per_image, settings, inputs, k1, progress)

@@ -18,6 +18,9 @@ def register(sub) -> None:
     p.add_argument("--cloud", type=Path, help="dense point cloud (PLY) in the model frame, for the cloud mode")
     p.add_argument("--mesh", type=Path, help="triangle mesh (PLY) in the model frame: depth tests, ray mode")
     p.add_argument("--detector", default="classical", help="detector name (default: classical)")
+    p.add_argument("--detections", type=Path,
+                   help="use these detections (cpdetect.detections/1, e.g. from 'cpdetect detect') instead of "
+                        "running the detector")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="detector setting (repeatable)")
     p.add_argument("--mode", default="auto", choices=["auto", "cloud", "ray", "triangulate"],
@@ -40,7 +43,8 @@ def run(args) -> int:
                               mode=args.mode, adjust=args.adjust, loss=args.loss,
                               registration_noise_m=args.noise, seed=args.seed)
     inputs = GeorefInputs(reconstruction=args.reconstruction, images=args.images, gcps=args.gcps, out=args.out,
-                          crs=args.crs, cloud=args.cloud, mesh=args.mesh)
+                          crs=args.crs, cloud=args.cloud, mesh=args.mesh,
+                          detections=args.detections)
     report = run_georef(inputs, settings, progress=_progress())
     print_summary(report, sys.stdout)
     return 0 if report["status"] == "ok" else 1
