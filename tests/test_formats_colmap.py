@@ -150,6 +150,21 @@ def test_missing_images_txt(tmp_path):
     assert ei.value.path == str(out / "images.txt") and "missing images.txt" in str(ei.value)
 
 
+@pytest.mark.parametrize("part", ["cameras", "images", "points3D"])
+def test_truncated_or_padded_binary_file(tmp_path, part):
+    """pycolmap alone reads stale values (or crashes) past the end of a cut file: we must refuse it."""
+    out = write_colmap(make_scene(np.random.default_rng(7)), tmp_path / "m", binary=True)
+    f = out / f"{part}.bin"
+    data = f.read_bytes()
+    for cut in (data[:5], data[:len(data) // 2], data[:-8], data[:-1], data + b"\0"):
+        f.write_bytes(cut)
+        with pytest.raises(InputError, match="corrupt") as ei:
+            read_colmap(out)
+        assert ei.value.path == str(f) and "\n" not in str(ei.value)
+    f.write_bytes(data)
+    assert_scenes_equal(read_colmap(out), read_colmap(out))
+
+
 def test_malformed_line_is_located(tmp_path):
     model = write_text_model(tmp_path / "m", "1 PINHOLE 100 80 90 90 50 40\n",
                              "# h\n1 1 0 0 0 0 0 0 1 a.jpg\n\n2 1 0 0 zero 0 0 0 1 b.jpg\n\n")
@@ -236,3 +251,16 @@ def test_read_reconstruction_detects_colmap(tmp_path):
     (tmp_path / "x.obj").write_text("v 0 0 0")
     with pytest.raises(InputError, match="unknown reconstruction format"):
         read_reconstruction(tmp_path / "x.obj")
+
+
+def test_explicit_points3d_argument(tmp_path):
+    scene = make_scene(np.random.default_rng(8))
+    xyz = np.array([[1.0, 2.0, 3.0], [-4.0, 5.5, 6.25]])
+    got = read_colmap(write_colmap(scene, tmp_path / "a", points3d=xyz))
+    np.testing.assert_array_equal(got.points, xyz)
+    np.testing.assert_array_equal(got.colors, np.full((2, 3), 128))
+    rgb = np.array([[1, 2, 3], [4, 5, 6]], np.uint8)
+    got = read_colmap(write_colmap(scene, tmp_path / "b", points3d=(xyz, rgb)))
+    np.testing.assert_array_equal(got.colors, rgb)
+    with pytest.raises(ValueError, match="non-finite"):
+        write_colmap(scene, tmp_path / "c", points3d=np.array([[0.0, np.nan, 1.0]]))

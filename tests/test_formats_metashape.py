@@ -131,6 +131,7 @@ def test_markers_round_trip_and_pixel_convention(tmp_path):
     assert back.markers[2].reference is None
     pts = back.survey_points()
     assert list(pts) == ["GCP1", "GCP2"]
+    assert back.crs().to_epsg() == 32632
     with pytest.raises(ValueError, match="not in the scene"):
         write_metashape_markers(tmp_path / "m2.xml", [MarkerRecord("x", None, {"nope.jpg": (1, 2)})], scene)
 
@@ -193,3 +194,12 @@ def test_read_reconstruction_detects_metashape(tmp_path):
     got = read_reconstruction(write_metashape_cameras(scene, tmp_path / "cams.xml"))
     assert got.meta["format"] == "metashape" and list(got.images) == list(scene.images)
     assert got.meta["ecef_from_model"] is got.meta["chunk_transform"]
+
+
+def test_entity_declarations_refused(tmp_path):
+    p = tmp_path / "e.xml"
+    p.write_text('<?xml version="1.0"?>\n<!DOCTYPE d [<!ENTITY a "aaaaaaaaaa">\n<!ENTITY b "&a;&a;&a;">]>\n'
+                 "<document><chunk>&b;</chunk></document>\n")
+    with pytest.raises(InputError, match="entity declarations") as ei:
+        read_metashape_markers(p)
+    assert ei.value.line == 2

@@ -94,6 +94,8 @@ def _load_reconstruction(model: Path):
     """pycolmap.Reconstruction of a located model folder; every failure becomes an InputError."""
     pycolmap = _pycolmap()
     binary = _has_part(model, "cameras", ".bin") or _has_part(model, "images", ".bin")
+    if binary:
+        _check_binary_layout(model)
     rec = pycolmap.Reconstruction()
     try:
         if binary:
@@ -106,6 +108,61 @@ def _load_reconstruction(model: Path):
         raise InputError(f"cannot read COLMAP {'binary' if binary else 'text'} model ({msg})",
                          where, line) from None
     return rec, binary
+
+
+def _param_counts() -> dict[int, int]:
+    """{COLMAP camera model id: number of parameters}, asked from pycolmap."""
+    pycolmap = _pycolmap()
+    out = {}
+    for name, mid in pycolmap.CameraModelId.__members__.items():
+        if name != "INVALID":
+            out[int(mid)] = len(pycolmap.Camera.create_from_model_id(1, mid, 1.0, 1, 1).params)
+    return out
+
+
+def _check_binary_layout(model: Path) -> None:
+    """Walk the record sizes of cameras.bin, images.bin and points3D.bin before pycolmap reads them.
+
+    pycolmap reads past the end of a truncated file (stale values, or a crash of the interpreter on a
+    huge track length), so the files' structure is checked first: counts and lengths only, following
+    COLMAP's little-endian layouts (doc/format.rst); pycolmap still does the reading.
+    """
+    import struct
+
+    def walk(name: str, record) -> None:
+        path = model / name
+        data = path.read_bytes()
+        try:
+            (n,) = struct.unpack_from("<Q", data, 0)
+            pos = 8
+            for _ in range(n):
+                pos = record(data, pos)
+                if pos > len(data):
+                    raise struct.error
+        except (struct.error, KeyError, ValueError):
+            raise InputError("truncated or corrupt COLMAP binary file", path) from None
+        if pos != len(data):
+            raise InputError(f"corrupt COLMAP binary file ({len(data) - pos} unexpected bytes at the end)",
+                             path)
+
+    counts = _param_counts()
+
+    def camera(data: bytes, pos: int) -> int:
+        (model_id,) = struct.unpack_from("<i", data, pos + 4)
+        return pos + 24 + 8 * counts[model_id]
+
+    def image(data: bytes, pos: int) -> int:
+        end = data.index(b"\0", pos + 64)
+        (n2d,) = struct.unpack_from("<Q", data, end + 1)
+        return end + 9 + 24 * n2d
+
+    def point(data: bytes, pos: int) -> int:
+        (track,) = struct.unpack_from("<Q", data, pos + 43)
+        return pos + 51 + 8 * track
+
+    walk("cameras.bin", camera)
+    walk("images.bin", image)
+    walk("points3D.bin", point)
 
 
 def _locate_text_error(model: Path) -> tuple[Path, Optional[int]]:

@@ -79,7 +79,11 @@ class _XmlDoc:
         def start(tag, attrs):
             lines[id(builder.start(tag, attrs))] = parser.CurrentLineNumber
 
+        def no_entities(*_args):
+            raise InputError("XML entity declarations are not allowed", path, parser.CurrentLineNumber)
+
         parser.StartElementHandler = start
+        parser.EntityDeclHandler = no_entities
         parser.EndElementHandler = builder.end
         parser.CharacterDataHandler = builder.data
         try:
@@ -395,6 +399,20 @@ class MetashapeMarkers:
     markers: list[MarkerRecord]
     crs_wkt: Optional[str] = None
     path: Optional[str] = None
+
+    def crs(self):
+        """The chunk CRS as a pyproj.CRS, or None when the file has none or it is ``LOCAL_CS``
+        (not georeferenced). An unreadable WKT raises :class:`InputError` naming the file."""
+        if not self.crs_wkt or self.crs_wkt.lstrip().upper().startswith("LOCAL_CS"):
+            return None
+        from pyproj import CRS
+        from pyproj.exceptions import CRSError
+
+        try:
+            return CRS.from_wkt(self.crs_wkt)
+        except CRSError as exc:
+            raise InputError(f"chunk <reference> is not a readable CRS ({str(exc).split(': (')[0]})",
+                             self.path) from None
 
     def survey_points(self) -> dict[str, np.ndarray]:
         """{label: reference (3,)} of the markers that have reference coordinates."""
