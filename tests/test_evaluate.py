@@ -1,0 +1,171 @@
+"""Evaluation: greedy matching on hand-made cases, pixel metrics against scikit-learn, oracle detectors."""
+import hashlib
+import json
+import math
+
+import numpy as np
+import pytest
+from sklearn.metrics import average_precision_score
+
+import cpdetect.detector as registry
+from cpdetect.cli import main
+from cpdetect.dataset import TrueMarker, load_dataset, read_mask
+from cpdetect.evaluate import PixelCounts, evaluate, match_detections, tolerance_px
+from cpdetect.imageio import read_image
+from cpdetect.synth_images import SynthImageOptions, write_synth_images
+from cpdetect.types import DetectionResult, MarkerDetection
+
+
+def det(x, y, score=0.9, type="square", r=8.0):
+    return MarkerDetection(x, y, score, type, r, 0.5)
+
+
+def tru(x, y, r=8.0, type="square"):
+    return TrueMarker(x, y, type, r)
+
+
+def test_tolerance_rule():
+    assert tolerance_px(4.0) == 3.0 and tolerance_px(12.0) == 3.0 and tolerance_px(40.0) == 10.0
+
+
+def test_distance_threshold_small_and_large_markers():
+    pairs, fp, fn = match_detections([det(12.9, 10), det(104, 100)], [tru(10, 10, 8), tru(100, 100, 8)])
+    assert [(p.det, p.truth) for p in pairs] == [(0, 0)] and fp == [1] and fn == [1]
+    assert math.isclose(pairs[0].distance, 2.9)
+    pairs, fp, fn = match_detections([det(109.9, 100), det(10, 20.1)], [tru(100, 100, 40), tru(10, 10, 40)])
+    assert [(p.det, p.truth) for p in pairs] == [(0, 0)] and fp == [1] and fn == [1]
+
+
+def test_greedy_by_score_not_by_list_order():
+    truths = [tru(0, 0), tru(4, 0)]
+    # low-score detection listed first would take B (nearest) if order were by list; by score the
+    # confident detection takes B and the other still reaches A
+    dets = [det(2.2, 0, score=0.5), det(3.9, 0, score=0.9)]
+    pairs, fp, fn = match_detections(dets, truths)
+    assert [(p.det, p.truth) for p in pairs] == [(1, 1), (0, 0)] and fp == [] and fn == []
+
+
+def test_a_closer_but_weaker_detection_does_not_steal():
+    pairs, fp, fn = match_detections([det(2, 0, 0.9), det(0.5, 0, 0.3)], [tru(0, 0)])
+    assert [(p.det, p.truth, p.distance) for p in pairs] == [(0, 0, 2.0)] and fp == [1] and fn == []
+
+
+def test_each_truth_matched_once_and_empty_sides():
+    pairs, fp, fn = match_detections([det(0, 0, 0.9), det(0.1, 0, 0.8), det(0.2, 0, 0.7)], [tru(0, 0)])
+    assert len(pairs) == 1 and fp == [1, 2] and fn == []
+    assert match_detections([], [tru(0, 0), tru(5, 5)]) == ([], [], [0, 1])
+    assert match_detections([det(1, 1)], []) == ([], [0], [])
+
+
+def test_pixel_iou_f1_exact_on_hand_case():
+    p = np.array([[0.9, 0.6, 0.2], [0.5, 0.49, 0.0]], np.float32)
+    t = np.array([[1, 0, 1], [1, 0, 0]], bool)
+    c = PixelCounts()
+    c.add(p, t)
+    # predicted (p >= 0.5): (0,0) (0,1) (1,0) -> TP 2 ((0,0), (1,0)), FP 1 ((0,1)), FN 1 ((0,2))
+    m = c.metrics()
+    assert (c.tp, c.fp, c.fn) == (2, 1, 1)
+    assert m["iou"] == pytest.approx(0.5) and m["f1"] == pytest.approx(4 / 6)
+    # AP by hand, thresholds from the top: 0.9 (P 1, R 1/3), 0.6 (P 1/2), 0.5 (P 2/3, R 2/3),
+    # 0.49 (P 1/2), 0.2 (P 3/5, R 1): recall steps of 1/3 at precisions 1, 2/3, 3/5
+    assert m["ap"] == pytest.approx(1 / 3 * 1 + 1 / 3 * 2 / 3 + 1 / 3 * 3 / 5)
+    assert m["ap"] == pytest.approx(average_precision_score(t.ravel(), p.ravel()))
+
+
+def test_pixel_ap_matches_sklearn_on_random_data():
+    rng = np.random.default_rng(4)
+    t = rng.random((400, 500)) < 0.1
+    logit = rng.normal(0, 1, t.shape) + 1.6 * t
+    p = (1 / (1 + np.exp(-logit))).astype(np.float32)
+    c = PixelCounts()
+    c.add(p[:200], t[:200])  # accumulated over two "images"
+    c.add(p[200:], t[200:])
+    exact = average_precision_score(t.ravel(), p.ravel())
+    assert 0.3 < exact < 0.8  # a non-trivial curve
+    assert abs(c.metrics()["ap"] - exact) < 5e-3
+    pred = p >= 0.5
+    tp, fp, fn = (pred & t).sum(), (pred & ~t).sum(), (~pred & t).sum()
+    assert c.metrics()["iou"] == pytest.approx(tp / (tp + fp + fn))
+
+
+def test_pixel_metrics_without_positives_are_nan():
+    c = PixelCounts()
+    c.add(np.zeros((5, 5), np.float32), np.zeros((5, 5), bool))
+    m = c.metrics()
+    assert math.isnan(m["ap"]) and math.isnan(m["iou"]) and math.isnan(m["f1"])
+
+
+# ------------------------------------------------------------------------------ oracle detectors
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("synth")
+    write_synth_images(root, 6, 11, SynthImageOptions(width=320, height=240, radius_min_px=8))
+    return load_dataset(root)
+
+
+def _oracle_factory(ds):
+    """A detector that returns the truth (looked up by image content), offset by ``offset`` px in x,
+    with a probability map equal to the mask (scaled by ``p``)."""
+    table = {}
+    for item in ds.images:
+        img = read_image(ds.image_path(item))
+        table[hashlib.sha1(img.tobytes()).hexdigest()] = item
+
+    class Oracle:
+        name = "oracle"
+
+        def __init__(self, offset: float = 0.0, p: float = 0.9, with_map: bool = True):
+            self.offset, self.p, self.with_map = offset, p, with_map
+
+        def detect(self, image):
+            item = table[hashlib.sha1(np.ascontiguousarray(image).tobytes()).hexdigest()]
+            h, w = image.shape[:2]
+            dets = [MarkerDetection(m.x + self.offset, m.y, 0.9, m.type, m.radius_px, 0.3) for m in item.markers]
+            prob = None
+            if self.with_map:
+                prob = read_mask(ds.mask_path(item)).astype(np.float32) * np.float32(self.p)
+            return DetectionResult(dets, (w, h), probability=prob)
+
+    return Oracle
+
+
+def test_oracle_scores_perfectly(dataset, monkeypatch, tmp_path, capsys):
+    monkeypatch.setitem(registry._REGISTERED, "oracle", _oracle_factory(dataset))
+    out = tmp_path / "m.json"
+    assert main(["eval", str(dataset.root), "--detector", "oracle", "--out", str(out)]) == 0
+    table = capsys.readouterr().out
+    assert "precision 1.000" in table and "recall 1.000" in table
+    m = json.loads(out.read_text())
+    for key in ("detector", "images", "markers", "tp", "fp", "fn", "precision", "recall", "f1",
+                "centre_error_px", "pixel", "seconds_per_megapixel", "type_accuracy"):
+        assert key in m
+    assert m["detector"] == "oracle" and m["images"] == 6 and m["markers"] == dataset.n_markers > 0
+    assert (m["tp"], m["fp"], m["fn"]) == (dataset.n_markers, 0, 0)
+    assert m["precision"] == m["recall"] == m["f1"] == m["type_accuracy"] == 1.0
+    assert m["centre_error_px"]["mean"] < 1e-9 and m["centre_error_px"]["p95"] < 1e-9
+    assert m["pixel"]["iou"] == 1.0 and m["pixel"]["f1"] == 1.0 and m["pixel"]["ap"] == pytest.approx(1.0)
+    assert m["seconds_per_megapixel"] > 0
+    rec = m["per_image"][0]
+    assert {"file", "tp", "fp", "fn", "matches", "missed", "false_positives", "background"} <= set(rec)
+    assert all("tilt_deg" in x and "blur_px" in x for r in m["per_image"] for x in r["matches"])
+
+
+def test_offset_oracle_has_the_known_error(dataset):
+    m = evaluate(dataset, _oracle_factory(dataset)(offset=0.7, with_map=False))
+    e = m["centre_error_px"]
+    assert abs(e["mean"] - 0.7) < 1e-9 and abs(e["median"] - 0.7) < 1e-9
+    assert m["pixel"] is None and m["recall"] == 1.0
+    # beyond the tolerance every small marker is lost: 3.5 px > max(3, 0.25 r) when r < 14
+    m = evaluate(dataset, _oracle_factory(dataset)(offset=3.5, with_map=False))
+    small = sum(1 for im in dataset.images for t in im.markers if t.radius_px < 14)
+    large = sum(1 for im in dataset.images for t in im.markers if t.radius_px >= 14)
+    assert m["fn"] == small and m["tp"] == large and m["fp"] == small
+
+
+def test_limit_and_json_safety(dataset):
+    m = evaluate(dataset, _oracle_factory(dataset)(p=0.3), limit=2)
+    assert m["images"] == 2 and len(m["per_image"]) == 2
+    # p = 0.3 everywhere on markers: nothing reaches 0.5, so IoU = 0 but AP is still perfect
+    assert m["pixel"]["iou"] == 0.0 and m["pixel"]["ap"] == pytest.approx(1.0)
+    json.dumps(m, allow_nan=False)
