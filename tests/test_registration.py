@@ -67,6 +67,26 @@ def test_explicit_tolerance_is_used_and_large_offsets_are_fine():
     assert 1e-5 < np.median(err) < 0.02
 
 
+def test_tolerance_adapts_to_noise_larger_than_assumed():
+    """Default config assumes 1 cm; with 2.5 cm of noise the tolerance grows with the residuals."""
+    rng = np.random.default_rng(21)
+    prob = simulate_detections(site(rng), rng, n_seen=30, n_false=10, noise=0.025, survey_noise=SURVEY_NOISE)
+    r = register_points(prob.detected, prob.surveyed, rng=rng)
+    assert r.status == "ok" and r.pairing() == prob.true_pairing()
+    sigma = np.hypot(0.025, SURVEY_NOISE)
+    assert 0.7 * sigma < r.sigma_m < 1.3 * sigma
+    assert r.tolerance_m > RegistrationConfig().initial_tolerance
+
+
+def test_large_sets_use_nearest_neighbour_triangles():
+    rng = np.random.default_rng(22)
+    config = RegistrationConfig()
+    prob = simulate_detections(site(rng, 80, (200, 200, 20)), rng, n_seen=50, n_false=15, noise=NOISE)
+    assert len(prob.surveyed) > config.full_index_limit
+    r = register_points(prob.detected, prob.surveyed, rng=rng, config=config)
+    assert r.status == "ok" and r.pairing() == prob.true_pairing()
+
+
 def test_same_rng_seed_same_result():
     rng = np.random.default_rng(3)
     prob = simulate_detections(site(rng, 20), rng, n_seen=15, n_false=3)
