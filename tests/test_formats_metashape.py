@@ -203,3 +203,12 @@ def test_entity_declarations_refused(tmp_path):
     with pytest.raises(InputError, match="entity declarations") as ei:
         read_metashape_markers(p)
     assert ei.value.line == 2
+
+
+@pytest.mark.parametrize("code", ["EPSG:4979", "EPSG:32632+5773", "EPSG:2056"])
+def test_markers_crs_objects_written_as_wkt(tmp_path, code):
+    from pyproj import CRS
+
+    crs = CRS.from_user_input(code)
+    p = write_metashape_markers(tmp_path / "m.xml", [MarkerRecord("a", [1.0, 2.0, 3.0])], crs=crs)
+    assert read_metashape_markers(p).crs().equals(crs)

@@ -429,8 +429,14 @@ def _crs_wkt(crs) -> Optional[str]:
 
         crs = parse_crs(crs, error=InputError)
     from pyproj.enums import WktVersion
+    from pyproj.exceptions import CRSError
 
-    return crs.to_wkt(WktVersion.WKT1_GDAL)
+    # Metashape writes WKT1 (GDAL flavour); CRSs that WKT1 cannot express fall back to WKT2.
+    try:
+        wkt = crs.to_wkt(WktVersion.WKT1_GDAL)
+    except CRSError:
+        wkt = None
+    return wkt or crs.to_wkt(WktVersion.WKT2_2019)
 
 
 def write_metashape_markers(path: str | os.PathLike, markers: Sequence[MarkerRecord],

@@ -139,7 +139,10 @@ def crs_header(crs) -> str:
         return f"EPSG:{code}"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # "lose projection information" is expected here
-        return crs.to_proj4()
+        proj = crs.to_proj4()
+    if not proj:
+        raise ValueError(f"CRS {crs.name!r} has neither an EPSG code nor a PROJ string for a gcp_list header")
+    return proj
 
 
 # ----------------------------------------------------------------------------------------------------
