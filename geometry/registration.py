@@ -21,7 +21,7 @@ Method (the 3D version of star-tracker "asterism" matching; seed paper §5.2 don
 3. **Early accept** on a statistical test (tetra3): the binomial probability that ≥ k−3 of the other
    N−3 detected points land within ``tol`` of a surveyed point by chance, times the number of
    hypotheses the generator could produce (Bonferroni), below ``accept_alpha``.
-4. **Refit → re-assign → refit** (mutual nearest neighbours within ``tol``) until the pairing is
+4. **Refit → re-assign → refit** (one-to-one nearest neighbours within ``tol``) until the pairing is
    stable; the final similarity is the least-squares (Umeyama) fit on all pairs. With the default
    automatic tolerance, the per-axis noise is re-estimated from the residuals and the tolerance
    adapted (bounded) before the final assignment.
@@ -186,15 +186,18 @@ def _all_triplets(n: int) -> np.ndarray:
 
 
 def _candidate_triplets(points: np.ndarray, full_limit: int, knn: int) -> np.ndarray:
+    """(T, 3) sorted index triplets: all C(n, 3) up to ``full_limit`` points, else each point with every
+    pair of its ``knn`` nearest neighbours (astroalign-style local triangles), deduplicated."""
     n = len(points)
     if n <= full_limit:
         return _all_triplets(n)
     k = min(knn, n - 1)
-    _, nbr = cKDTree(points).query(points, k=k + 1)
+    _, nbr = cKDTree(points).query(points, k=k + 1)  # column 0 is the point itself
     pairs = np.array(list(itertools.combinations(range(1, k + 1), 2)), dtype=np.intp)
-    tri = np.concatenate([np.repeat(np.arange(n)[:, None], len(pairs), 0)[:, :, None].reshape(-1, 1),
-                          nbr[:, pairs].reshape(-1, 2)], axis=1)
+    apex = np.repeat(np.arange(n), len(pairs))[:, None]
+    tri = np.concatenate([apex, nbr[:, pairs].reshape(-1, 2)], axis=1)
     tri.sort(axis=1)
+    tri = tri[(tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2])]
     return np.unique(tri, axis=0)
 
 
@@ -507,7 +510,8 @@ class _Pairing:
 
 
 def _assign(problem: Problem, sim: Sim3, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mutual nearest neighbours within ``tol`` between sim(model) and world."""
+    """Pairs (detected rows, surveyed rows, distances): each detected point with its nearest surveyed
+    point within ``tol``; a surveyed point claimed by several keeps only the closest (one-to-one)."""
     x = sim(problem.model)
     d, j = problem.world_tree.query(x, distance_upper_bound=tol)
     i = np.nonzero(np.isfinite(d))[0]
@@ -581,7 +585,7 @@ def _probe_triangles(problem: Problem, best: _Pairing, rng: np.random.Generator,
 
 def _alternatives(problem: Problem, best: _Pairing, rng: np.random.Generator,
                   tried: list[int]) -> list[_Pairing]:
-    """All refined pairings reachable from probe triangles, the best one's own included."""
+    """Refined pairings reachable from probe triangles (may include the best pairing itself)."""
     c = problem.config
     probes = _probe_triangles(problem, best, rng, c.ambiguity_probes)
     if len(probes) == 0:

@@ -22,7 +22,9 @@ FORMAT = "cpdetect.registration/1"
 
 def register(sub) -> None:
     p = sub.add_parser("register", help="pair detected marker points with surveyed points and fit world_from_model",
-                       description=__doc__.splitlines()[0])
+                       description="Pair detected marker points (model frame, any scale) with surveyed points "
+                                   "without IDs and fit the similarity world_from_model. Exit 0: ok; 3: "
+                                   "ambiguous or failed (JSON still written); 2: bad input.")
     p.add_argument("--detected", required=True, help="CSV id,x,y,z of detected marker points (model frame)")
     p.add_argument("--surveyed", required=True,
                    help="surveyed points: CSV name,x,y,z; an ODM gcp_list.txt (its header gives the CRS); "
