@@ -315,9 +315,13 @@ def read_colmap(folder: str | os.PathLike) -> Scene:
         log.info("%s: %d unregistered images skipped", model, skipped)
     points = colors = None
     if rec.num_points3D():
-        pids = sorted(rec.points3D.keys())
-        points = np.array([rec.points3D[i].xyz for i in pids], dtype=np.float64).reshape(-1, 3)
-        colors = np.array([rec.points3D[i].color for i in pids], dtype=np.uint8).reshape(-1, 3)
+        items = sorted(rec.points3D.items(), key=lambda kv: kv[0])
+        pids = [k for k, _ in items]
+        points = np.empty((len(items), 3), np.float64)
+        colors = np.empty((len(items), 3), np.uint8)
+        for i, (_, p) in enumerate(items):
+            points[i] = p.xyz
+            colors[i] = p.color
         if not np.all(np.isfinite(points)):
             bad = pids[int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])]
             line = None if binary else _text_line(model, "points3D.txt", str(bad))
