@@ -173,6 +173,14 @@ def test_malformed_line_is_located(tmp_path):
     assert (ei.value.path, ei.value.line) == (str(model / "images.txt"), 4)
 
 
+def test_wrong_parameter_count_is_located(tmp_path):
+    model = write_text_model(tmp_path / "m", "1 PINHOLE 100 80 90 90 50 40\n2 OPENCV 100 80 90 90 50 40\n",
+                             "1 1 0 0 0 0 0 0 1 a.jpg\n\n")
+    with pytest.raises(InputError) as ei:
+        read_colmap(model)
+    assert (ei.value.path, ei.value.line) == (str(model / "cameras.txt"), 2)
+
+
 def test_non_finite_point_rejected(tmp_path):
     model = write_text_model(tmp_path / "m", "1 PINHOLE 100 80 90 90 50 40\n",
                              "1 1 0 0 0 0 0 0 1 a.jpg\n\n", "1 0 0 0 1 1 1 0\n2 nan 0 0 1 1 1 0\n")

@@ -54,6 +54,12 @@ def test_round_trip_scene_metashape_scene(tmp_path):
     np.testing.assert_allclose(M[:3, 3], scene.images["IMG_0000.JPG"].center, atol=1e-9)
 
 
+def test_camera_labels_as_stems(tmp_path):
+    scene = make_scene(np.random.default_rng(5))
+    back = read_metashape_cameras(write_metashape_cameras(scene, tmp_path / "c.xml", camera_labels="stem"))
+    assert list(back.images) == [n.rsplit(".", 1)[0] for n in scene.images]
+
+
 def metashape_project(cal: dict, w: int, h: int, X: np.ndarray) -> np.ndarray:
     """The Metashape manual's frame camera formula, written out independently (corner pixel origin)."""
     x, y = X[:, 0] / X[:, 2], X[:, 1] / X[:, 2]

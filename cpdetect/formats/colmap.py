@@ -167,9 +167,15 @@ def _check_binary_layout(model: Path) -> None:
 
 def _locate_text_error(model: Path) -> tuple[Path, Optional[int]]:
     """Best effort after pycolmap rejected a text model: the first line with too few or non-numeric
-    fields. Only used to name file and line in the error; pycolmap does the reading."""
-    specs = {  # file: (fields per data line (min), indices that must be numbers)
-        "cameras.txt": lambda f, k: len(f) >= 5 and _all_num(f[:1] + f[2:]),
+    fields, or a camera line whose parameter count does not fit its model. Only used to name file and
+    line in the error; pycolmap does the reading."""
+    pycolmap = _pycolmap()
+    counts = _param_counts()
+    n_params = {name: counts[int(mid)] for name, mid in pycolmap.CameraModelId.__members__.items()
+                if name != "INVALID"}
+    specs = {  # file: test of one data line's fields (k: index of the data line)
+        "cameras.txt": lambda f, k: (len(f) >= 5 and _all_num(f[:1] + f[2:])
+                                     and len(f) - 4 == n_params.get(f[1], -1)),
         "images.txt": lambda f, k: (k % 2 == 1) or (len(f) >= 10 and _all_num(f[:9])),
         "points3D.txt": lambda f, k: len(f) >= 8 and _all_num(f),
     }

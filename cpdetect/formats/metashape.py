@@ -331,13 +331,18 @@ def _transform_el(parent: ET.Element, sim: Sim3) -> None:
     ET.SubElement(tr, "scale", locked="false").text = _fmt(sim.scale)
 
 
-def write_metashape_cameras(scene: Scene, path: str | os.PathLike, chunk_label: str = "Chunk 1") -> Path:
+def write_metashape_cameras(scene: Scene, path: str | os.PathLike, chunk_label: str = "Chunk 1",
+                            camera_labels: str = "name") -> Path:
     """Write a Scene as a Metashape camera XML (the layout of "Export Cameras"), atomically.
 
-    One sensor per scene camera (id = camera id), one camera per image (label = image name, transform =
-    camera -> chunk = inverse of ``cam_from_world``), ``scene.meta["chunk_transform"]`` (Sim3) as the
-    component transform and ``scene.meta["crs_wkt"]`` as the chunk reference, when present.
+    One sensor per scene camera (id = camera id), one camera per image (transform = camera -> chunk =
+    inverse of ``cam_from_world``), ``scene.meta["chunk_transform"]`` (Sim3) as the component
+    transform and ``scene.meta["crs_wkt"]`` as the chunk reference, when present. Camera labels are
+    the image names (``camera_labels="name"``, exact round trip) or their stems (``"stem"``, what
+    Metashape shows, for importing into a chunk).
     """
+    if camera_labels not in ("stem", "name"):
+        raise ValueError("camera_labels must be 'stem' or 'name'")
     root = ET.Element("document", version=DOCUMENT_VERSION)
     chunk = ET.SubElement(root, "chunk", label=chunk_label, enabled="true")
     sensors = ET.SubElement(chunk, "sensors", next_id=str(max(scene.cameras, default=-1) + 1))
@@ -364,7 +369,7 @@ def write_metashape_cameras(scene: Scene, path: str | os.PathLike, chunk_label: 
         if rec.camera_id not in scene.cameras:
             raise ValueError(f"image {name!r} uses camera {rec.camera_id}, which the scene lacks")
         c = ET.SubElement(cams, "camera", id=str(ids[name]), sensor_id=str(int(rec.camera_id)),
-                          component_id="0", label=name)
+                          component_id="0", label=Path(name).stem if camera_labels == "stem" else name)
         ET.SubElement(c, "transform").text = " ".join(
             _fmt(v) for v in rec.cam_from_world.inverse().matrix.ravel())
     wkt = scene.meta.get("crs_wkt")
