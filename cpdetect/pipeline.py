@@ -80,7 +80,7 @@ class GeorefSettings:
     detector_settings: dict = field(default_factory=dict)
     mode: str = "auto"
     min_score: float = 0.3
-    cloud_threshold: float = 0.5
+    cloud_threshold: float = 0.3
     prob_max_side: int = 384
     depth_max_side: int = 480
     min_radius_px: float = 5.0
@@ -91,7 +91,7 @@ class GeorefSettings:
     f_scale: float = 2.0
     outlier_sigma: float = 6.0
     min_views: int = 3
-    min_detected_fraction: float = 0.5
+    min_detected_fraction: float = 0.3
     adjust: bool = False
     prior_rot_deg: float = 0.05
     prior_pos: Optional[float] = None
@@ -522,27 +522,41 @@ def _localize_triangulate(scene, per_image, settings) -> dict:
 
 
 def stage_localize(store, scene, per_image, settings, inputs: GeorefInputs, prev_key: str, progress):
+    """First 3D marker estimates. Mode ``auto``: the cloud colorization when a cloud and probability
+    maps are available, *plus* the ray casting of detections when a mesh is (their candidates are
+    pooled; duplicates merge after triangulation), else triangulation of detection pairs."""
     has_prob = any(d["probability"] for d in per_image.values())
     mode = settings.mode
     if mode == "auto":
-        mode = "cloud" if (inputs.cloud and has_prob) else "ray" if inputs.mesh else "triangulate"
-    if mode == "cloud" and not inputs.cloud:
+        parts = (["cloud"] if (inputs.cloud and has_prob) else []) + (["ray"] if inputs.mesh else [])
+        mode = "+".join(parts) or "triangulate"
+    if "cloud" in mode.split("+") and not inputs.cloud:
         raise UsageError("mode 'cloud' needs --cloud")
-    if mode == "cloud" and not has_prob:
+    if "cloud" in mode.split("+") and not has_prob:
         raise UsageError(f"mode 'cloud' needs probability maps; detector {settings.detector!r} gives none")
-    if mode == "ray" and not inputs.mesh:
+    if "ray" in mode.split("+") and not inputs.mesh:
         raise UsageError("mode 'ray' needs --mesh")
-    key = [prev_key, mode, _file_key(inputs.cloud) if mode == "cloud" else None, _file_key(inputs.mesh),
+    key = [prev_key, mode, _file_key(inputs.cloud) if "cloud" in mode else None, _file_key(inputs.mesh),
            _stage_settings(settings, "localize")]
 
     def compute():
         mesh_rc = _load_mesh_scene(inputs.mesh)
-        if mode == "cloud":
-            cloud, normals = _load_cloud(inputs.cloud)
-            return _localize_cloud(scene, per_image, settings, cloud, normals, mesh_rc, store.dir, progress)
-        if mode == "ray":
-            return _localize_ray(scene, per_image, settings, mesh_rc)
-        return _localize_triangulate(scene, per_image, settings)
+        results = []
+        for part in mode.split("+"):
+            if part == "cloud":
+                cloud, normals = _load_cloud(inputs.cloud)
+                res = _localize_cloud(scene, per_image, settings, cloud, normals, mesh_rc, store.dir, progress)
+            elif part == "ray":
+                res = _localize_ray(scene, per_image, settings, mesh_rc)
+            else:
+                res = _localize_triangulate(scene, per_image, settings)
+            for c in res["candidates"]:
+                c["source"] = part
+            results.append(res)
+        out = {"mode": mode, "radius_model": results[0]["radius_model"],
+               "candidates": [c for r in results for c in r["candidates"]],
+               "details": {r["mode"]: {k: v for k, v in r.items() if k != "candidates"} for r in results}}
+        return out
 
     return store.run("localize", key, compute)
 
