@@ -65,6 +65,7 @@ class SynthImageOptions:
     margin_prob: float = 0.4
     margin_frac: tuple[float, float] = (0.08, 0.5)
     contrast: tuple[float, float] = (35.0, 230.0)
+    colour_prob: float = 0.15
     texture_prob: float = 0.3
     texture_max: float = 0.35
     occlusion_prob: float = 0.15
@@ -108,7 +109,7 @@ class SynthImageOptions:
         for k in self.confuser_kinds:
             if k not in CONFUSER_KINDS:
                 raise ValueError(f"unknown confuser {k!r}; valid: {', '.join(CONFUSER_KINDS)}")
-        for name in ("empty_prob", "margin_prob", "texture_prob", "occlusion_prob", "shadow_prob",
+        for name in ("empty_prob", "colour_prob", "margin_prob", "texture_prob", "occlusion_prob", "shadow_prob",
                      "defocus_prob", "motion_prob", "occlusion_max"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1]")
@@ -347,7 +348,14 @@ def _levels(rng: np.random.Generator, opt: SynthImageOptions) -> tuple[np.ndarra
     d = np.float32(dark) * tint()
     b = np.clip(np.float32(bright) * tint(), 0, 255)
     m = np.clip(np.float32(bright) * rng.uniform(0.93, 1.05) * tint(), 0, 255)
+    if rng.random() < opt.colour_prob:
+        # coloured paint for the bright quadrants (yellow, orange, red, pink; BGR), white margin
+        hue = _MARKER_COLOURS[int(rng.integers(len(_MARKER_COLOURS)))]
+        b = np.clip(np.float32(bright) * hue * tint(), 0, 255).astype(np.float32)
     return d, b, m
+
+
+_MARKER_COLOURS = np.array([[0.15, 0.9, 1.0], [0.1, 0.55, 1.0], [0.15, 0.15, 0.95], [0.7, 0.45, 1.0]], np.float32)
 
 
 def _occluder(rng: np.random.Generator, centre: np.ndarray, radius: float, shape: tuple[int, int],
