@@ -169,3 +169,25 @@ def test_limit_and_json_safety(dataset):
     # p = 0.3 everywhere on markers: nothing reaches 0.5, so IoU = 0 but AP is still perfect
     assert m["pixel"]["iou"] == 0.0 and m["pixel"]["ap"] == pytest.approx(1.0)
     json.dumps(m, allow_nan=False)
+
+
+def test_demo_generates_and_evaluates_skipping_broken_detectors(tmp_path, monkeypatch, capsys):
+    class Nothing:
+        name = "nothing"
+
+        def detect(self, image):
+            return DetectionResult([], (image.shape[1], image.shape[0]))
+
+    def broken():
+        raise RuntimeError("no weights\nsecond line")
+
+    monkeypatch.setitem(registry._REGISTERED, "nothing", Nothing)
+    monkeypatch.setitem(registry._REGISTERED, "broken", broken)
+    rc = main(["-q", "demo", "--workdir", str(tmp_path), "--n", "3", "--detectors", "nothing", "broken"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "broken" in out and "skipped" in out and "no weights" in out and "second line" not in out
+    m = json.loads((tmp_path / "metrics-nothing.json").read_text())
+    assert m["images"] == 3 and m["tp"] == 0 and m["fn"] == m["markers"]
+    assert m["recall"] == (0.0 if m["markers"] else None) and m["precision"] is None
+    assert load_dataset(tmp_path / "images-set").images[0].file == "images/000000.jpg"
