@@ -84,23 +84,27 @@ def transform_points(pose: Rigid3, points: np.ndarray) -> np.ndarray:
 
 
 def sample_texture(tex: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear lookup (n, 3) in ``tex`` (h, w, 3) at texel coordinates x, y (texel centres at integers),
-    mirror-repeated beyond the image so tiles join without seams."""
+    """Bilinear lookup (n, 3) float32 in ``tex`` (h, w, 3) float32 at texel coordinates x, y (texel
+    centres at integers), mirror-repeated beyond the image so tiles join without seams."""
     h, w = tex.shape[:2]
 
     def mirror(c, n):
         c = np.mod(c + 0.5, 2 * n)
         c = np.where(c > n, 2 * n - c, c) - 0.5
-        return np.clip(c, 0.0, n - 1.0)
+        return np.clip(c, 0.0, n - 1.0).astype(np.float32)
 
-    x, y = mirror(x, w), mirror(y, h)
-    x0 = np.minimum(np.floor(x).astype(np.int32), w - 2)
-    y0 = np.minimum(np.floor(y).astype(np.int32), h - 2)
-    fx = (x - x0).astype(np.float32)[:, None]
-    fy = (y - y0).astype(np.float32)[:, None]
-    top = tex[y0, x0] * (1 - fx) + tex[y0, x0 + 1] * fx
-    bot = tex[y0 + 1, x0] * (1 - fx) + tex[y0 + 1, x0 + 1] * fx
-    return top * (1 - fy) + bot * fy
+    n = len(x)
+    cols = 1024
+    rows = -(-n // cols)
+    mx = np.zeros(rows * cols, np.float32)
+    my = np.zeros(rows * cols, np.float32)
+    mx[:n], my[:n] = mirror(x, w), mirror(y, h)
+    out = np.empty((rows, cols, 3), np.float32)
+    for r0 in range(0, rows, 16384):  # cv2.remap wants maps smaller than 32767 rows
+        r1 = min(rows, r0 + 16384)
+        cv2.remap(tex, mx.reshape(rows, cols)[r0:r1], my.reshape(rows, cols)[r0:r1], cv2.INTER_LINEAR,
+                  dst=out[r0:r1], borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(-1, 3)[:n]
 
 
 class SiteRenderer:
@@ -339,8 +343,8 @@ def apply_effects(image: np.ndarray, effects: ImageEffects, rng: np.random.Gener
     if effects.noise_sigma > 0:
         for r0 in range(0, h, band):
             r1 = min(h, r0 + band)
-            noisy = out[r0:r1].astype(np.float32) + rng.normal(0.0, effects.noise_sigma,
-                                                               (r1 - r0, w, 3)).astype(np.float32)
+            noise = rng.standard_normal((r1 - r0, w, 3), dtype=np.float32)
+            noisy = out[r0:r1].astype(np.float32) + np.float32(effects.noise_sigma) * noise
             out[r0:r1] = np.clip(noisy + 0.5, 0, 255).astype(np.uint8)
     return out
 

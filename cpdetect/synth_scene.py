@@ -182,7 +182,9 @@ def _load_textures(split: str, rng: np.random.Generator, n_faces: int, mesh: Pie
     lib = BackgroundLibrary(chosen)
     textures = []
     for i in range(len(chosen)):
-        rgb = cv2.cvtColor(lib.image(i), cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+        bgr = lib.image(i)
+        bgr = bgr[3:-3, 3:-3] if min(bgr.shape[:2]) > 64 else bgr  # JPEG borders would show as seams
+        rgb = cv2.cvtColor(np.ascontiguousarray(bgr), cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
         textures.append(rgb)
     env_img = cv2.GaussianBlur(textures[-1], (0, 0), 3.0)
     textures = textures[:-1]
@@ -335,27 +337,6 @@ def _dense_cloud(site: Site, rng: np.random.Generator) -> tuple[np.ndarray, np.n
     return pts, colors, normals
 
 
-def _write_ply_points(path: Path, xyz: np.ndarray, rgb: np.ndarray, normals: np.ndarray) -> None:
-    try:
-        from .formats.ply import write_ply_points  # type: ignore
-    except ImportError:
-        write_ply_points = None
-    if write_ply_points is not None:
-        write_ply_points(path, xyz, rgb, normals)
-        return
-    import open3d as o3d
-    from .fileio import atomic_path
-
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(xyz, float)))
-    pc.colors = o3d.utility.Vector3dVector(np.asarray(rgb, float) / 255.0)
-    pc.normals = o3d.utility.Vector3dVector(np.asarray(normals, float))
-    with atomic_path(path) as tmp:
-        tmp_ply = tmp.with_suffix(".ply")
-        if not o3d.io.write_point_cloud(str(tmp_ply), pc, write_ascii=False):
-            raise InputError("cannot write point cloud", path)
-        os.replace(tmp_ply, tmp)
-
-
 def _write_mesh(path: Path, vertices: np.ndarray, triangles: np.ndarray) -> None:
     import open3d as o3d
     from .fileio import atomic_path
@@ -416,6 +397,7 @@ def write_site(out_dir: str | os.PathLike, settings: SiteSettings, overwrite: bo
     only with ``overwrite``. ``progress(done, total)`` is called after each image.
     """
     from .formats.colmap import write_colmap
+    from .formats.ply import write_ply_points
 
     out_dir = Path(out_dir)
     settings.check()
@@ -451,7 +433,7 @@ def write_site(out_dir: str | os.PathLike, settings: SiteSettings, overwrite: bo
         pts, colors, normals = _dense_cloud(site, rng["cloud"])
         pts_m = m2s.scale * np.einsum("ij,kj->ki", m2s.R, pts) + m2s.t
         normals_m = np.einsum("ij,kj->ki", m2s.R, normals)
-        _write_ply_points(tmp / "fused.ply", pts_m, colors, normals_m)
+        write_ply_points(tmp / "fused.ply", pts_m, colors, normals_m)
         _write_mesh(tmp / "mesh.ply", m2s(site.mesh.vertices), site.mesh.triangles)
         scene = site.scene()
         pose_rng = rng["poses"]

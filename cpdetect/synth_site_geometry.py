@@ -317,7 +317,7 @@ def candidate_points(mesh: PierMesh, rng: np.random.Generator, n: int, kinds=("s
 
 
 def place_markers(mesh: PierMesh, request: PlacementRequest, rng: np.random.Generator, view_count,
-                  max_tries: int = 200) -> list[PlacedMarker]:
+                  max_tries: int = 100) -> list[PlacedMarker]:
     """Place markers asymmetrically on the side faces of the pier.
 
     ``view_count(points (n, 3), normals (n, 3)) -> (n,) int`` counts the images that see a point
@@ -337,8 +337,17 @@ def place_markers(mesh: PierMesh, request: PlacementRequest, rng: np.random.Gene
         group = [MARKER_TYPES[(start + i) % 3] for i in range(n_role)]
         rng.shuffle(group)
         types += group
+    n_cand = 6000  # candidate centres and their view counts, drawn once for all tries
+    faces, uv = candidate_points(mesh, rng, n_cand)
+    points = np.empty((n_cand, 3))
+    normals = np.empty((n_cand, 3))
+    for fi in np.unique(faces):
+        sel = faces == fi
+        points[sel] = mesh.faces[fi].from_plane(uv[sel])
+        normals[sel] = mesh.faces[fi].normal
+    counts = np.asarray(view_count(points, normals))
     for _ in range(max_tries):
-        placed = _try_layout(mesh, request, rng, view_count, roles, types)
+        placed = _try_layout(mesh, request, rng, (faces, uv, counts), roles, types)
         if placed is None:
             continue
         centers = np.array([m.center for m in placed])
@@ -350,19 +359,11 @@ def place_markers(mesh: PierMesh, request: PlacementRequest, rng: np.random.Gene
                      f"after {max_tries} tries; ask for fewer markers or more images")
 
 
-def _try_layout(mesh, request, rng, view_count, roles, types):
-    n_cand = 4000
-    faces, uv = candidate_points(mesh, rng, n_cand)
+def _try_layout(mesh, request, rng, candidates, roles, types):
+    faces, uv, counts = candidates
     sizes = rng.uniform(*request.size_range, size=len(roles))
-    points = np.empty((n_cand, 3))
-    normals = np.empty((n_cand, 3))
-    for fi in np.unique(faces):
-        sel = faces == fi
-        points[sel] = mesh.faces[fi].from_plane(uv[sel])
-        normals[sel] = mesh.faces[fi].normal
-    counts = view_count(points, normals)
     placed: list[PlacedMarker] = []
-    used = np.zeros(n_cand, bool)
+    used = np.zeros(len(faces), bool)
     for k, (role, mtype) in enumerate(zip(roles, types)):
         margin = 0.0 if mtype == "circle" else float(rng.uniform(0.0, 0.15)) * sizes[k]
         spec = MarkerSpec(mtype, size_m=float(sizes[k]), margin_m=margin)
