@@ -200,6 +200,15 @@ def test_read_reconstruction_detects_metashape(tmp_path):
     got = read_reconstruction(write_metashape_cameras(scene, tmp_path / "cams.xml"))
     assert got.meta["format"] == "metashape" and list(got.images) == list(scene.images)
     assert got.meta["ecef_from_model"] is got.meta["chunk_transform"]
+    # A forced format skips detection (a Metashape export saved without the .xml suffix).
+    (tmp_path / "cams.export").write_bytes((tmp_path / "cams.xml").read_bytes())
+    assert read_reconstruction(tmp_path / "cams.export", fmt="metashape").meta["format"] == "metashape"
+    with pytest.raises(InputError, match="unknown reconstruction format"):
+        read_reconstruction(tmp_path / "cams.export")
+    from cpdetect.errors import UsageError
+
+    with pytest.raises(UsageError, match="valid: colmap, metashape, opensfm"):
+        read_reconstruction(tmp_path / "cams.xml", fmt="bundler")
 
 
 def test_entity_declarations_refused(tmp_path):

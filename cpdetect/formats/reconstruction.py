@@ -19,13 +19,17 @@ from typing import Optional
 
 from geometry.scene import Scene
 
-from ..errors import InputError
-from .colmap import MODEL_PARTS, is_colmap_model, read_colmap
+from ..errors import InputError, UsageError
+from .colmap import MODEL_PARTS, find_colmap_model, is_colmap_model, read_colmap
 from .metashape import read_metashape_cameras
 from .opensfm import read_opensfm
 from .ply import read_ply_points
 
 log = logging.getLogger(__name__)
+
+#: Reconstruction readers by format name: each takes the path :func:`detect_reconstruction_format`
+#: returns and gives a Scene.
+READERS = {"colmap": read_colmap, "metashape": read_metashape_cameras, "opensfm": read_opensfm}
 
 ACCEPTED = ("a COLMAP model folder (or a folder with sparse/ or sparse/0), an ODM project folder, "
             "an OpenSfM reconstruction.json, or a Metashape camera .xml")
@@ -55,21 +59,28 @@ def detect_reconstruction_format(path: str | os.PathLike) -> tuple[str, Path]:
 
 
 def read_reconstruction(path: str | os.PathLike, cloud: Optional[str | os.PathLike] = None,
-                        mesh: Optional[str | os.PathLike] = None) -> Scene:
+                        mesh: Optional[str | os.PathLike] = None, fmt: Optional[str] = None) -> Scene:
     """Read any supported reconstruction into a Scene (model frame, OpenCV pixel convention).
 
-    ``cloud``: an optional PLY whose vertices replace ``scene.points`` (and colors/normals when the
-    file has them), e.g. a dense cloud in the same model frame. ``mesh``: an optional mesh file path
-    stored as ``scene.mesh_path`` (checked to exist). ``scene.meta["format"]`` names the format read.
+    ``fmt``: force a format (a key of :data:`READERS`) instead of detecting it. ``cloud``: an optional
+    PLY whose vertices replace ``scene.points`` (and colors/normals when the file has them), e.g. a
+    dense cloud in the same model frame. ``mesh``: an optional mesh file path stored as
+    ``scene.mesh_path`` (checked to exist). ``scene.meta["format"]`` names the format read.
     """
-    fmt, target = detect_reconstruction_format(path)
-    log.info("reading %s as %s", target, fmt)
-    if fmt == "colmap":
-        scene = read_colmap(target)
-    elif fmt == "metashape":
-        scene = read_metashape_cameras(target)
+    if fmt is None:
+        fmt, target = detect_reconstruction_format(path)
+    elif fmt not in READERS:
+        raise UsageError(f"unknown reconstruction format {fmt!r}; valid: {', '.join(sorted(READERS))}")
     else:
-        scene = read_opensfm(target)
+        target = Path(path)
+        if fmt == "colmap" and target.is_file():
+            target = target.parent
+        if fmt == "colmap":
+            find_colmap_model(target)  # one-line error for a missing folder or file
+        elif not target.is_file():
+            raise InputError(f"{fmt} reconstruction file not found", target)
+    log.info("reading %s as %s", target, fmt)
+    scene = READERS[fmt](target)
     if not scene.images:
         raise InputError("the reconstruction has no registered (posed) images", target)
     if cloud is not None:
