@@ -21,7 +21,9 @@ view dominate many distant oblique ones. ``weight`` (sum of w) and ``n_views`` a
 caller can ignore points with too little evidence.
 
 Everything is vectorised over points with numpy; one image is processed at a time, so memory stays
-at a few arrays of the cloud's length however many images there are.
+at a few arrays of the cloud's length however many images there are. The cloud is sorted once into
+voxel blocks of about 4096 points; each image only touches the blocks whose bounding spheres meet its
+viewing frustum, so the cost per image follows what it sees, not the size of the cloud.
 """
 from __future__ import annotations
 
@@ -32,7 +34,7 @@ import numpy as np
 
 from .camera import Camera
 from .transforms import Rigid3
-from .visibility import DepthMap, visible_points
+from .visibility import DepthMap, normalized_bounds, project_checked
 
 
 @dataclass(frozen=True)
@@ -88,31 +90,101 @@ def view_weights(points_in_cam: np.ndarray, camera: Camera, normals_in_cam: Opti
     return w
 
 
+@dataclass(frozen=True)
+class _Blocks:
+    """The cloud sorted into voxel blocks: ``order`` (n,) permutation, per block its first index into
+    the sorted cloud, its point count, bounding-sphere centre (b, 3) and radius (b,)."""
+
+    order: np.ndarray
+    start: np.ndarray
+    count: np.ndarray
+    centre: np.ndarray
+    radius: np.ndarray
+
+
+def _make_blocks(P: np.ndarray, points_per_block: int = 4096) -> _Blocks:
+    lo, hi = P.min(0), P.max(0)
+    ext = np.maximum(hi - lo, 1e-9)
+    n_blocks = max(1, len(P) // points_per_block)
+    # cells of equal size; a flat axis (extent < cell) gets one layer
+    cell = float(np.prod(ext) / n_blocks) ** (1 / 3)
+    for _ in range(3):  # the flat axes do not use up blocks: enlarge the others
+        layers = np.maximum(1, np.floor(ext / cell))
+        cell = cell * float(np.prod(layers) / n_blocks) ** (1 / 3) if np.prod(layers) > n_blocks else cell
+    ijk = np.minimum(((P - lo) / cell).astype(np.int64), np.maximum(1, np.ceil(ext / cell)).astype(np.int64) - 1)
+    dims = ijk.max(0) + 1
+    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+    order = np.argsort(key, kind="stable")
+    _, start, count = np.unique(key[order], return_index=True, return_counts=True)
+    Ps = P[order]
+    lo_b = np.minimum.reduceat(Ps, start, axis=0)
+    hi_b = np.maximum.reduceat(Ps, start, axis=0)
+    centre = 0.5 * (lo_b + hi_b)
+    radius = 0.5 * np.linalg.norm(hi_b - lo_b, axis=1)
+    return _Blocks(order, start, count, centre, radius)
+
+
+def _frustum_normals(bounds: np.ndarray) -> np.ndarray:
+    """Inward unit normals (4, 3), camera frame, of the planes through the centre that bound the
+    normalised coordinates ``bounds`` = (x0, y0, x1, y1) (see :func:`normalized_bounds`)."""
+    x0, y0, x1, y1 = bounds
+    n = np.array([[1.0, 0.0, -x0], [-1.0, 0.0, x1], [0.0, 1.0, -y0], [0.0, -1.0, y1]])
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def _blocks_in_view(blocks: _Blocks, bounds: np.ndarray, pose: Rigid3) -> np.ndarray:
+    """Indices into the sorted cloud of the points in blocks whose bounding sphere meets the frustum."""
+    c = blocks.centre @ pose.R.T + pose.t
+    keep = c[:, 2] + blocks.radius > 0
+    keep &= np.all(c @ _frustum_normals(bounds).T >= -blocks.radius[:, None], axis=1)
+    st, ct = blocks.start[keep], blocks.count[keep]
+    if len(st) == 0:
+        return np.zeros(0, np.int64)
+    # concatenated ranges [st, st + ct)
+    offsets = np.repeat(st - np.concatenate([[0], np.cumsum(ct)[:-1]]), ct)
+    return np.arange(int(ct.sum()), dtype=np.int64) + offsets
+
+
 def fuse_scores(points_in_world: np.ndarray, views: Iterable[FusionView],
                 normals_in_world: Optional[np.ndarray] = None, min_cos: float = 0.2,
                 rel_tol: float = 0.02, abs_tol: float = 0.0) -> FusionResult:
     """Fuse probability maps of ``views`` into a per-point score (see the module docstring).
 
     points_in_world: (n, 3) model frame; normals_in_world: (n, 3) unit normals or None.
-    ``rel_tol``/``abs_tol``: depth-test tolerances (see :func:`visible_points`).
+    ``rel_tol``/``abs_tol``: depth-test tolerances (as in :func:`geometry.visibility.visible_points`;
+    ``abs_tol`` a scalar or one per point).
     """
     P = np.asarray(points_in_world, float).reshape(-1, 3)
     N = None if normals_in_world is None else np.asarray(normals_in_world, float).reshape(-1, 3)
-    num = np.zeros(len(P))
-    den = np.zeros(len(P))
-    n_views = np.zeros(len(P), np.int32)
+    n = len(P)
+    blocks = _make_blocks(P)
+    P = P[blocks.order]
+    N = None if N is None else N[blocks.order]
+    tol_all = np.broadcast_to(np.asarray(abs_tol, float), (n,))
+    tol_all = tol_all[blocks.order] if tol_all.strides[0] else tol_all
+    num = np.zeros(n)
+    den = np.zeros(n)
+    n_views = np.zeros(n, np.int32)
     for view in views:
-        vis = visible_points(P, view.camera, view.cam_from_world, view.depth_map, rel_tol=rel_tol,
-                             abs_tol=abs_tol)
-        idx = np.flatnonzero(vis.visible)
+        cam, pose = view.camera, view.cam_from_world
+        bounds = normalized_bounds(cam)
+        idx = _blocks_in_view(blocks, bounds, pose)          # frustum culling by blocks
+        Pc = P[idx] @ pose.R.T + pose.t
+        uv, inside = project_checked(cam, Pc, bounds)
+        idx, Pc, uv = idx[inside], Pc[inside], uv[inside]
+        if view.depth_map is not None and len(idx):
+            ok = Pc[:, 2] <= view.depth_map.lookup(uv) * (1.0 + rel_tol) + tol_all[idx]
+            idx, Pc, uv = idx[ok], Pc[ok], uv[ok]
         if len(idx) == 0:
             continue
-        Pc = view.cam_from_world(P[idx])
-        Nc = None if N is None else N[idx] @ view.cam_from_world.R.T
-        w = view_weights(Pc, view.camera, Nc, min_cos)
-        p = sample_bilinear(view.probability, vis.uv[idx], (view.camera.width, view.camera.height))
+        Nc = None if N is None else N[idx] @ pose.R.T
+        w = view_weights(Pc, cam, Nc, min_cos)
+        p = sample_bilinear(view.probability, uv, (cam.width, cam.height))
         num[idx] += w * p
         den[idx] += w
         n_views[idx] += (w > 0).astype(np.int32)
+    inv = np.empty(n, np.int64)
+    inv[blocks.order] = np.arange(n)
+    num, den, n_views = num[inv], den[inv], n_views[inv]
     score = np.divide(num, den, out=np.zeros_like(num), where=den > 0)
     return FusionResult(np.clip(score, 0.0, 1.0), den, n_views)

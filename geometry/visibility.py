@@ -35,12 +35,48 @@ class DepthMap:
         """Depth (n,) at the depth-map cell nearest to each image pixel ``uv`` (n, 2); ``inf`` outside."""
         uv = np.asarray(uv, float).reshape(-1, 2)
         h, w = self.depth.shape
-        j = np.floor((uv[:, 0] + 0.5) * self.scale).astype(np.int64)
-        i = np.floor((uv[:, 1] + 0.5) * self.scale).astype(np.int64)
-        inside = (j >= 0) & (j < w) & (i >= 0) & (i < h)
+        fin = np.isfinite(uv).all(axis=1)
+        j = np.floor((np.where(fin, uv[:, 0], -1e9) + 0.5) * self.scale)
+        i = np.floor((np.where(fin, uv[:, 1], -1e9) + 0.5) * self.scale)
+        inside = fin & (j >= 0) & (j < w) & (i >= 0) & (i < h)
         out = np.full(len(uv), np.inf)
-        out[inside] = self.depth[i[inside], j[inside]]
+        out[inside] = self.depth[i[inside].astype(np.int64), j[inside].astype(np.int64)]
         return out
+
+
+def normalized_bounds(camera: Camera, margin: float = 0.05) -> np.ndarray:
+    """(x0, y0, x1, y1): extremes of the undistorted normalised coordinates of the image border,
+    widened by ``margin`` of the span. Points outside cannot project into the image, and checking it
+    *before* applying the distortion polynomial avoids its fold-back far off-axis."""
+    t = np.linspace(0.0, 1.0, 33)
+    W, H = camera.width - 0.5, camera.height - 0.5
+    bx = -0.5 + t * (W + 0.5)
+    by = -0.5 + t * (H + 0.5)
+    border = np.concatenate([np.column_stack([bx, np.full_like(t, -0.5)]), np.column_stack([bx, np.full_like(t, H)]),
+                             np.column_stack([np.full_like(t, -0.5), by]), np.column_stack([np.full_like(t, W), by])])
+    xn = camera.undistort_normalized(np.column_stack([(border[:, 0] - camera.cx) / camera.fx,
+                                                      (border[:, 1] - camera.cy) / camera.fy]))
+    (x0, y0), (x1, y1) = xn.min(0), xn.max(0)
+    mx, my = margin * (x1 - x0), margin * (y1 - y0)
+    return np.array([x0 - mx, y0 - my, x1 + mx, y1 + my])
+
+
+def project_checked(camera: Camera, points_in_cam: np.ndarray, bounds: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (n, 2) of camera-frame points (n, 3) and a mask of those in front of the camera, inside
+    the image and within :func:`normalized_bounds` (pixels of the others are NaN)."""
+    P = np.asarray(points_in_cam, float).reshape(-1, 3)
+    b = normalized_bounds(camera) if bounds is None else bounds
+    z = P[:, 2]
+    ok = z > 1e-12
+    zs = np.where(ok, z, 1.0)
+    x, y = P[:, 0] / zs, P[:, 1] / zs
+    ok &= (x >= b[0]) & (x <= b[2]) & (y >= b[1]) & (y <= b[3])
+    uv = np.full((len(P), 2), np.nan)
+    if ok.any():
+        uv[ok] = camera.project(P[ok])[0]
+        ok[ok] = camera.in_image(uv[ok])
+    return uv, ok
 
 
 def depth_map_shape(camera: Camera, max_side: int) -> tuple[float, int, int]:
@@ -84,12 +120,11 @@ def zbuffer_depth_map(points_in_world: np.ndarray, camera: Camera, cam_from_worl
     """
     scale, h, w = depth_map_shape(camera, max_side)
     P = cam_from_world(np.asarray(points_in_world, float).reshape(-1, 3))
-    uv, front = camera.project(P)
-    j = np.floor((uv[:, 0] + 0.5) * scale).astype(np.int64)
-    i = np.floor((uv[:, 1] + 0.5) * scale).astype(np.int64)
-    ok = front & (j >= 0) & (j < w) & (i >= 0) & (i < h)
+    uv, ok = project_checked(camera, P)
+    j = np.clip(np.floor((uv[ok, 0] + 0.5) * scale).astype(np.int64), 0, w - 1)
+    i = np.clip(np.floor((uv[ok, 1] + 0.5) * scale).astype(np.int64), 0, h - 1)
     depth = np.full(h * w, np.inf, dtype=np.float64)
-    np.minimum.at(depth, i[ok] * w + j[ok], P[ok, 2])
+    np.minimum.at(depth, i * w + j, P[ok, 2])
     depth = depth.reshape(h, w)
     if fill_px > 0:
         depth = ndimage.minimum_filter(depth, size=2 * fill_px + 1, mode="nearest")
@@ -100,8 +135,8 @@ def zbuffer_depth_map(points_in_world: np.ndarray, camera: Camera, cam_from_worl
 class Visibility:
     """Per-point result of projecting (n,) points into one image.
 
-    uv: (n, 2) pixels; depth: (n,) camera z; visible: (n,) bool (in front, inside the image, and
-    passing the depth test if one was given).
+    uv: (n, 2) pixels (NaN for points that cannot project into the image); depth: (n,) camera z;
+    visible: (n,) bool (in front, inside the image, and passing the depth test if one was given).
     """
 
     uv: np.ndarray
@@ -119,8 +154,9 @@ def visible_points(points_in_world: np.ndarray, camera: Camera, cam_from_world: 
     depth map only the frustum test is made. ``abs_tol``: model units, a scalar or one per point (n,).
     """
     P = cam_from_world(np.asarray(points_in_world, float).reshape(-1, 3))
-    uv, front = camera.project(P)
-    vis = front & camera.in_image(uv, border=border_px)
+    uv, vis = project_checked(camera, P)
+    if border_px > 0:
+        vis[vis] = camera.in_image(uv[vis], border=border_px)
     if depth_map is not None and vis.any():
         d = depth_map.lookup(uv[vis])
         idx = np.flatnonzero(vis)

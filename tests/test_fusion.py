@@ -123,3 +123,31 @@ def test_dbscan_params_scale_with_the_scene():
     assert b.eps == pytest.approx(1000 * a.eps) and b.min_samples == a.min_samples
     with pytest.raises(ValueError):
         dbscan_params(0.0, 0.3)
+
+
+def test_block_culling_gives_the_same_scores_as_projecting_every_point():
+    from geometry.visibility import visible_points, zbuffer_depth_map
+
+    rng = np.random.default_rng(4)
+    P = np.column_stack([rng.uniform(-20, 20, 30000), rng.uniform(-20, 20, 30000), rng.normal(0, 0.3, 30000)])
+    N = np.tile([0.0, 0.0, -1.0], (len(P), 1))
+    cam = Camera(400, 300, 300.0, 300.0, 201.0, 148.0, dist=(-0.1, 0.02, 0.001, 0.0, 0.0))
+    views = []
+    for k in range(6):
+        c = np.array([rng.uniform(-15, 15), rng.uniform(-15, 15), -8.0])
+        pose = look_at(c, c + [rng.uniform(-4, 4), rng.uniform(-4, 4), 8.0])
+        views.append(FusionView(cam, pose, rng.uniform(0, 1, (30, 40)).astype(np.float32),
+                                zbuffer_depth_map(P, cam, pose, max_side=100)))
+    res = fuse_scores(P, views, N, abs_tol=0.05)
+    num, den, nv = np.zeros(len(P)), np.zeros(len(P)), np.zeros(len(P), int)
+    for v in views:
+        vis = visible_points(P, v.camera, v.cam_from_world, v.depth_map, rel_tol=0.02, abs_tol=0.05)
+        i = np.flatnonzero(vis.visible)
+        w = view_weights(v.cam_from_world(P[i]), cam, N[i] @ v.cam_from_world.R.T, 0.2)
+        num[i] += w * sample_bilinear(v.probability, vis.uv[i], (cam.width, cam.height))
+        den[i] += w
+        nv[i] += w > 0
+    assert 0.05 * len(P) < (nv > 0).sum() < 0.9 * len(P)  # the views see part of the cloud only
+    np.testing.assert_array_equal(res.n_views, nv)
+    np.testing.assert_allclose(res.weight, den, rtol=1e-9)
+    np.testing.assert_allclose(res.score, np.divide(num, den, out=np.zeros_like(num), where=den > 0), atol=1e-6)
