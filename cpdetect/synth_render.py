@@ -10,9 +10,9 @@ environment photograph.
 
 Anti-aliasing: each pixel corner is sampled once (corners are shared, so about one ray per pixel) and
 a pixel is the mean of its four corners. A pixel whose four corner samples do not all see the same
-surface label (face, marker quadrant, ground, sky) is re-rendered with ``supersample`` x
-``supersample`` box-filtered samples, so marker edges, silhouettes and face edges are area-sampled:
-coverage error per pixel stays below 1/supersample^2, as in :func:`cpdetect.markers.render_marker`.
+surface label (face, marker quadrant, ground, sky) is re-rendered with ``supersample``^2 box-filtered
+samples on a rank-1 lattice (every sample with its own x and y), so marker edges, silhouettes and face
+edges are area-sampled and an edge of any direction is placed to about 1/supersample^2 of a pixel.
 
 Frames: site frame (metres, z up); poses ``cam_from_site``; pixels in the OpenCV convention (the
 centre of the top-left pixel is (0, 0)). Images are rendered in bands of rows, so memory stays bounded
@@ -105,6 +105,22 @@ def sample_texture(tex: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         cv2.remap(tex, mx.reshape(rows, cols)[r0:r1], my.reshape(rows, cols)[r0:r1], cv2.INTER_LINEAR,
                   dst=out[r0:r1], borderMode=cv2.BORDER_REPLICATE)
     return out.reshape(-1, 3)[:n]
+
+
+def subpixel_pattern(n: int) -> np.ndarray:
+    """``n`` sub-pixel offsets (n, 2) in (-0.5, 0.5)^2: a rank-1 (Fibonacci-like) lattice, x_k = (k + 0.5)/n,
+    y_k = ((k g) mod n + 0.5)/n - 0.5 with g coprime to n near n / golden ratio.
+
+    Unlike an S x S grid, every sample has its own x and its own y, so an edge parallel to the pixel
+    axes is located to 1/n of a pixel rather than 1/S (a grid biases such edges by up to 1/(2S) px);
+    both coordinates average exactly to the pixel centre."""
+    if n <= 1:
+        return np.zeros((1, 2))
+    g = int(round(n / 1.6180339887))
+    while math.gcd(g, n) != 1:
+        g += 1
+    k = np.arange(n)
+    return np.stack([(k + 0.5) / n - 0.5, ((k * g) % n + 0.5) / n - 0.5], axis=1)
 
 
 class SiteRenderer:
@@ -256,15 +272,13 @@ class SiteRenderer:
         """RGB float32 image (h, w, 3) in [0, ~1] of the site (no photometric effects).
 
         Samples every pixel corner (shared between neighbours) and averages a pixel's four corners;
-        pixels whose corners see different surface labels are re-sampled with ``supersample`` x
-        ``supersample`` sub-pixel rays at x + (i + 0.5)/S - 0.5. ``ray_cache`` (a dict kept by the
+        pixels whose corners see different surface labels are re-sampled with ``supersample``^2
+        sub-pixel rays (:func:`subpixel_pattern`). ``ray_cache`` (a dict kept by the
         caller across images of the same camera) stores the corner rays of small images.
         ``progress(rows_done)`` is called after each band."""
         w, h = camera.width, camera.height
         out = np.empty((h, w, 3), np.float32)
-        S = int(supersample)
-        offs = (np.arange(S) + 0.5) / S - 0.5
-        sub = np.stack(np.meshgrid(offs, offs), axis=-1).reshape(-1, 2)  # (S*S, 2) x, y
+        sub = subpixel_pattern(int(supersample) ** 2)
         R = cam_from_site.R.astype(np.float32)
         origin = cam_from_site.center
         cacheable = ray_cache is not None and (w + 1) * (h + 1) <= 4_000_000
@@ -349,18 +363,34 @@ def apply_effects(image: np.ndarray, effects: ImageEffects, rng: np.random.Gener
     return out
 
 
-def fit_xcorner(image: np.ndarray, guess: tuple[float, float], radius: float, inner: float = 1.5
+def box_edge_coverage(s: np.ndarray, theta: float) -> np.ndarray:
+    """Fraction of a unit pixel on the positive side of a straight edge (exact area, box filter).
+
+    ``s``: signed distance (px) of the pixel centre from the edge, positive on the covered side;
+    ``theta``: direction of the edge (radians). The pixel's area projected on the edge normal has a
+    trapezoidal density; the coverage is its cumulative distribution at ``s``."""
+    nx, ny = abs(math.sin(theta)), abs(math.cos(theta))
+    A, B = 0.5 * (nx + ny), 0.5 * abs(nx - ny)
+    h = 1.0 / (A + B)
+    ramp = max(A - B, 1e-12)
+    t = -np.abs(s)  # evaluate the lower half and mirror
+    low = np.where(t <= -A, 0.0,
+                   np.where(t <= -B, h * (t + A) ** 2 / (2 * ramp), h * ramp / 2 + h * (t + B)))
+    return np.where(s >= 0, 1.0 - low, low)
+
+
+def fit_xcorner(image: np.ndarray, guess: tuple[float, float], radius: float, inner: float = 2.0
                 ) -> np.ndarray:
     """Measure an X-corner (two straight edges crossing, opposite sectors alike) in a float gray image,
-    independently of any projection model: a least-squares fit of two lines through a common point,
-    with Gaussian-blurred (sigma fitted) edges, to the pixels between ``inner`` and ``radius`` pixels
-    of ``guess``. Used to check that rendered marker centres sit where the cameras project them.
+    independently of any projection model: a least-squares fit of two lines through a common point to
+    the pixels between ``inner`` and ``radius`` pixels of ``guess``, each pixel modelled as the exact
+    box-filtered (area) coverage of the sectors, as this renderer produces them. Used to check that
+    rendered marker centres sit where the cameras project them.
 
     Every marker type is such a corner near its aiming point, under any perspective; ``radius`` must
     stay inside the printed pattern. Returns (x, y) in OpenCV pixels.
     """
     from scipy.optimize import least_squares
-    from scipy.special import ndtr
 
     gx, gy = float(guess[0]), float(guess[1])
     r = int(np.ceil(radius)) + 1
@@ -374,9 +404,9 @@ def fit_xcorner(image: np.ndarray, guess: tuple[float, float], radius: float, in
     X, Y, V = xs[sel].astype(float), ys[sel].astype(float), vals[sel]
 
     def model(p):
-        cx, cy, t1, t2, a, b, s = p
-        p1 = ndtr(((X - cx) * np.sin(t1) - (Y - cy) * np.cos(t1)) / s)
-        p2 = ndtr(((X - cx) * np.sin(t2) - (Y - cy) * np.cos(t2)) / s)
+        cx, cy, t1, t2, a, b = p
+        p1 = box_edge_coverage((X - cx) * math.sin(t1) - (Y - cy) * math.cos(t1), t1)
+        p2 = box_edge_coverage((X - cx) * math.sin(t2) - (Y - cy) * math.cos(t2), t2)
         return b + (a - b) * (p1 * p2 + (1 - p1) * (1 - p2))
 
     lo, hi = np.percentile(V, 5), np.percentile(V, 95)
@@ -385,15 +415,15 @@ def fit_xcorner(image: np.ndarray, guess: tuple[float, float], radius: float, in
     for i, t1 in enumerate(angles):  # coarse search of the two edge directions
         for t2 in angles[i + 1:]:
             for a, b in ((lo, hi), (hi, lo)):
-                p = (gx, gy, t1, t2, a, b, 0.4)
+                p = (gx, gy, t1, t2, a, b)
                 e = float(np.sum((model(p) - V) ** 2))
                 if best is None or e < best[0]:
                     best = (e, p)
-    res = least_squares(lambda p: model(p) - V, best[1],
-                        x_scale=[0.1, 0.1, 0.01, 0.01, 0.05, 0.05, 0.05],
-                        bounds=([gx - 3, gy - 3, -10, -10, -2, -2, 0.1], [gx + 3, gy + 3, 10, 10, 3, 3, 3]))
+    res = least_squares(lambda p: model(p) - V, best[1], x_scale=[0.1, 0.1, 0.01, 0.01, 0.05, 0.05],
+                        bounds=([gx - 3, gy - 3, -10, -10, -2, -2], [gx + 3, gy + 3, 10, 10, 3, 3]))
     return res.x[:2].copy()
 
 
-__all__ = ["Appearance", "ImageEffects", "SiteRenderer", "sample_texture", "apply_effects", "fit_xcorner",
+__all__ = ["Appearance", "ImageEffects", "SiteRenderer", "sample_texture", "apply_effects", "fit_xcorner", "subpixel_pattern",
+           "box_edge_coverage",
            "transform_points", "MISS", "GROUND"]
