@@ -47,6 +47,8 @@ from .fileio import atomic_path, read_json, write_json_atomic
 log = logging.getLogger(__name__)
 
 STAGE_FORMAT = "cpdetect.georef-stage/1"
+# bumped whenever what a stage computes changes, so that stale stage files are recomputed
+ALGORITHM_VERSION = 3
 REPORT_FORMAT = "cpdetect.georef-report/1"
 DETECTIONS_FORMAT = "cpdetect.detections/1"
 MODES = ("auto", "cloud", "ray", "triangulate")
@@ -167,7 +169,7 @@ class StageStore:
         self.skipped: list[str] = []
 
     def run(self, name: str, key_parts: Any, compute: Callable[[], Any]) -> tuple[Any, str]:
-        key = _hash([STAGE_FORMAT, name, key_parts])
+        key = _hash([STAGE_FORMAT, ALGORITHM_VERSION, name, key_parts])
         path = self.dir / f"{name}.json"
         if path.exists():
             try:
@@ -723,12 +725,27 @@ def stage_triangulate(store, ctx_factory, scene, refined, localized, per_image, 
                   for j, m in enumerate(first)]
         out = _merge_duplicates(_triangulate_markers(scene, second, settings, dropped), dropped)
         out = [m for m in out if _enough_support(m, settings, dropped)]
+        for m in out:
+            m["quality"] = marker_quality(m, settings)
         adjusted = None
         if settings.adjust and out:
             adjusted = _adjust(scene, out, settings, radius)
         return {"markers": out, "dropped": dropped, "adjusted": adjusted, "rejected_views": rejected}
 
     return store.run("triangulate", key, compute)
+
+
+def marker_quality(m: dict, settings: GeorefSettings) -> float:
+    """How much a triangulated marker looks like a real marker (higher is better), for ranking:
+    (fraction of its usable views where the detector found it) x min(1, inlier views / 5) /
+    max(median refinement sigma of its inlier views, 0.05 px). Markers give a crisp X-corner that
+    the detector recognises in most views; X-corners of the scenery refine less sharply and are
+    recognised rarely."""
+    c = m["counts"]
+    inl = [o for o in m["observations"] if o["inlier"]]
+    frac = c["detected"] / max(c["usable"], 1)
+    sig = float(np.median([o["sigma_px"] for o in inl])) if inl else 1.0
+    return float(frac * min(1.0, len(inl) / 5.0) / max(sig, 0.05))
 
 
 def _enough_support(m, settings, dropped) -> bool:
@@ -821,6 +838,9 @@ def _read_points(path: Path) -> tuple[list[str], np.ndarray, Optional[str]]:
 
 
 def stage_register(store, triangulated, surveyed: Surveyed, settings, prev_key, gcps_key):
+    """Register the markers to the surveyed points. When that fails with every marker (false markers
+    can outnumber the real ones and let chance explain any pairing), it is retried with the best
+    markers by :func:`marker_quality`: the best 3M, 2M, 1.5M and M for M surveyed points."""
     key = [prev_key, gcps_key, surveyed.crs, _stage_settings(settings, "register")]
 
     def compute():
@@ -829,10 +849,21 @@ def stage_register(store, triangulated, surveyed: Surveyed, settings, prev_key, 
         markers = triangulated["markers"]
         det = np.array([m["model_point"] for m in markers]).reshape(-1, 3)
         cfg = RegistrationConfig(noise=settings.registration_noise_m)
-        res = register_points(det, surveyed.local, rng=np.random.default_rng(settings.seed), config=cfg)
-        return {"status": res.status, "reason": res.reason,
+        order = np.argsort([-m.get("quality", 0.0) for m in markers], kind="stable")
+        M = len(surveyed.names)
+        sizes = [len(markers)] + sorted({int(math.ceil(f * M)) for f in (3, 2, 1.5, 1)
+                                         if 3 <= math.ceil(f * M) < len(markers)}, reverse=True)
+        attempts = []
+        for n in sizes:
+            subset = np.sort(order[:n])
+            res = register_points(det[subset], surveyed.local, rng=np.random.default_rng(settings.seed), config=cfg)
+            attempts.append({"markers": int(n), "status": res.status, "reason": res.reason,
+                             "pairs": len(res.pairs), "rms_m": res.rms_m})
+            if res.status == "ok":
+                break
+        return {"status": res.status, "reason": res.reason, "attempts": attempts,
                 "world_from_model": None if res.world_from_model is None else res.world_from_model.to_dict(),
-                "pairs": [{"detected": p.detected, "surveyed": p.surveyed, "residual_m": p.residual}
+                "pairs": [{"detected": int(subset[p.detected]), "surveyed": p.surveyed, "residual_m": p.residual}
                           for p in res.pairs],
                 "rms_m": res.rms_m, "sigma_m": res.sigma_m, "tolerance_m": res.tolerance_m,
                 "hypotheses_tried": res.hypotheses_tried, "chance_probability": res.chance_probability,
@@ -864,6 +895,7 @@ def build_report(settings, inputs, localized, triangulated, registered, surveyed
     markers = []
     for k, m in enumerate(triangulated["markers"]):
         entry = {"id": f"M{k + 1:03d}", "model_point": m["model_point"], "rms_px": m["rms_px"],
+                 "quality": m.get("quality"),
                  "covariance_model": m["covariance_model"],
                  "n_views": sum(o["inlier"] for o in m["observations"]),
                  "observations": [{"image": o["image"], "x": o["x"], "y": o["y"], "sigma_px": o["sigma_px"],
@@ -999,7 +1031,8 @@ def run_georef(inputs: GeorefInputs, settings: GeorefSettings = GeorefSettings()
                                    _hash(Path(inputs.gcps).read_bytes().hex()))
     stages = {"ran": store.ran, "skipped": store.skipped, "seconds": round(time.perf_counter() - t0, 2),
               "candidates": len(localized["candidates"]), "refine_rejected": refined["rejected"],
-              "dropped": triangulated["dropped"], "adjusted": triangulated["adjusted"]}
+              "dropped": triangulated["dropped"], "adjusted": triangulated["adjusted"],
+              "registration_attempts": registered.get("attempts")}
     report = build_report(settings, inputs, localized, triangulated, registered, surveyed, stages)
     export(report, out, surveyed, scene)
     return report

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from cpdetect.cli import main
+from cpdetect.georef_demo import transform_error_at_markers
 from cpdetect.synth_scene import SiteSettings, write_site
 
 SURVEY_SIGMA = 0.003  # metres per axis, injected into gcps.csv
@@ -72,9 +73,9 @@ def test_georef_pairs_every_marker_and_residuals_match_the_noise(site, capsys):
     floor = np.sqrt((3 * SURVEY_SIGMA ** 2 + tri_var) * (n - 7 / 3) / n)
     assert 0.4 * floor < report["rms_m"] < 2.0 * floor
     # the transform: scale and position of the model agree with the truth
-    wfm_true = truth["world_from_model"]
-    assert report["crs_from_model"]["scale"] == pytest.approx(wfm_true["scale"], rel=2e-3)
-    np.testing.assert_allclose(report["crs_from_model"]["translation"], wfm_true["translation"], atol=0.05)
+    assert report["crs_from_model"]["scale"] == pytest.approx(truth["world_from_model"]["scale"], rel=5e-3)
+    err = transform_error_at_markers(report["crs_from_model"], truth)
+    assert 0.1 * SURVEY_SIGMA < err.mean() < 3 * SURVEY_SIGMA
     # exports
     gcp_lines = (out / "gcp_list.txt").read_text().splitlines()
     assert gcp_lines[0] == "EPSG:25832" and len(gcp_lines) - 1 == sum(m["n_views"] for m in paired.values())

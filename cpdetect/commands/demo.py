@@ -21,6 +21,10 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--detectors", nargs="*", metavar="NAME",
                    help="detectors to evaluate (default: every registered one)")
+    p.add_argument("--no-georef", action="store_true",
+                   help="skip the georeferencing run on a synthetic site")
+    p.add_argument("--site-images", type=int, default=32,
+                   help="photos of the synthetic site for the georeferencing run (default 32)")
     p.set_defaults(func=run)
 
 
@@ -98,5 +102,20 @@ def run(args) -> int:
     for line in summary_lines(results):
         print(line)
     evaluated = [n for n, r in results.items() if not isinstance(r, str)]
-    print(f"metrics: {', '.join(str(workdir / f'metrics-{n}.json') for n in evaluated) or 'none (no detector could be built)'}")
-    return 0
+    files = ", ".join(str(workdir / f"metrics-{n}.json") for n in evaluated)
+    print(f"metrics: {files or 'none (no detector could be built)'}")
+    if getattr(args, "no_georef", False):
+        return 0
+    if "classical" not in names:
+        print("georef on a synthetic site: skipped (it runs the classical detector, which --detectors leaves out)")
+        return 0
+    cmp = run_georef_step(workdir, args.seed, getattr(args, "site_images", 32))
+    return 0 if cmp["all_paired"] else 1
+
+
+def run_georef_step(workdir: Path, seed: int, n_images: int) -> dict:
+    """Step 3: a synthetic site, ``georef`` on it with the default detector, checked against the truth
+    (see :mod:`cpdetect.georef_demo`)."""
+    from ..georef_demo import run_site_demo
+
+    return run_site_demo(workdir, seed=seed, detector="classical", n_images=n_images)
