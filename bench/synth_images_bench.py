@@ -1,6 +1,7 @@
 """Speed and content figures of the synthetic marker image generator; writes a JSON of figures.
 
-    .venv/bin/python bench/synth_images_bench.py [--n 100] [--size 640x480] [--out bench/results/synth_images_bench.json]
+    .venv/bin/python bench/synth_images_bench.py [--n 100] [--size 640x480]
+        [--out bench/results/synth_images_bench.json]
 
 Measures, single-threaded (OpenCV and BLAS on one thread): images per second for generation alone
 (``generate_image``) and for generation plus encoding and atomic writes (``write_synth_images``,

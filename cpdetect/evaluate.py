@@ -149,7 +149,7 @@ def _json_safe(obj: Any) -> Any:
     return obj
 
 
-def image_record(file: str, width: int, height: int, seconds: float, detections: Sequence[MarkerDetection],
+def score_image(file: str, width: int, height: int, seconds: float, detections: Sequence[MarkerDetection],
                  truths: Sequence[TrueMarker], meta: dict | None = None) -> dict:
     """Per-image evaluation record: counts, matched pairs and misses with the truth's extra fields
     (for breakdowns by type, size, tilt, blur, background), and the false positives."""
@@ -213,7 +213,7 @@ def evaluate(dataset: Dataset, detector: Any, limit: int | None = None,
     """Run ``detector`` on every image of ``dataset`` (the first ``limit`` when given) and score it.
 
     Returns a JSON-safe dict: the summary keys of :func:`summarize` (NaN written as None) plus
-    ``"dataset"`` (its root) and ``"per_image"`` (one :func:`image_record` per image). Images are
+    ``"dataset"`` (its root) and ``"per_image"`` (one :func:`score_image` per image). Images are
     decoded with :func:`cpdetect.imageio.read_image` (BGR uint8); only ``detector.detect`` is timed.
     Raises :class:`~cpdetect.errors.InputError` naming the file for an unreadable image or mask.
     """
@@ -235,7 +235,7 @@ def evaluate(dataset: Dataset, detector: Any, limit: int | None = None,
         if result.probability is not None and item.mask is not None:
             truth = read_mask(dataset.mask_path(item), shape=(h, w))
             pixel.add(result.probability_at(w, h), truth)
-        records.append(image_record(item.file, w, h, seconds, result.detections, item.markers, item.meta))
+        records.append(score_image(item.file, w, h, seconds, result.detections, item.markers, item.meta))
         if progress:
             progress(k + 1, len(items))
     out = summarize(records, pixel, detector=name)
@@ -267,5 +267,5 @@ def format_table(metrics: dict) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["Match", "match_detections", "tolerance_px", "PixelCounts", "image_record", "summarize", "evaluate",
+__all__ = ["Match", "match_detections", "tolerance_px", "PixelCounts", "score_image", "summarize", "evaluate",
            "format_table", "AP_BINS"]

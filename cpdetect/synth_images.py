@@ -36,7 +36,8 @@ import numpy as np
 
 from .backgrounds import SPLITS, BackgroundLibrary, list_backgrounds
 from .confusers import CONFUSER_KINDS, draw_confuser
-from .dataset import TrueMarker, image_record, write_markers_json
+from .dataset import MARKERS_JSON, TrueMarker, image_record, write_markers_json
+from .errors import InputError
 from .fileio import write_bytes_atomic
 from .markers import MarkerSpec, apply_homography, plane_homography, projected_radius, render_marker
 from .types import MARKER_TYPES
@@ -554,6 +555,10 @@ def write_synth_images(out: str | os.PathLike, n: int, seed: int, opt: SynthImag
     if n < 0:
         raise ValueError("n must be >= 0")
     out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError("output must be a folder, found a file", out)
+    # an interrupted run must not leave an old markers.json describing a mix of old and new images
+    (out / MARKERS_JSON).unlink(missing_ok=True)
     records: list[dict] = []
     if workers <= 1 or n < 4:
         lib = BackgroundLibrary(list_backgrounds(opt.split))
