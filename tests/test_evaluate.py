@@ -182,10 +182,18 @@ def test_demo_generates_and_evaluates_skipping_broken_detectors(tmp_path, monkey
         raise RuntimeError("no weights\nsecond line")
 
     monkeypatch.setitem(registry._REGISTERED, "nothing", Nothing)
+    class Crashes:
+        name = "crashes"
+
+        def detect(self, image):
+            raise IndexError("bug inside the detector")
+
     monkeypatch.setitem(registry._REGISTERED, "broken", broken)
-    rc = main(["-q", "demo", "--workdir", str(tmp_path), "--n", "3", "--detectors", "nothing", "broken"])
+    monkeypatch.setitem(registry._REGISTERED, "crashes", Crashes)
+    rc = main(["-q", "demo", "--workdir", str(tmp_path), "--n", "3", "--detectors", "nothing", "broken", "crashes"])
     out = capsys.readouterr().out
     assert rc == 0
+    assert "crashes" in out and "IndexError: bug inside the detector" in out
     assert "broken" in out and "skipped" in out and "no weights" in out and "second line" not in out
     m = json.loads((tmp_path / "metrics-nothing.json").read_text())
     assert m["images"] == 3 and m["tp"] == 0 and m["fn"] == m["markers"]

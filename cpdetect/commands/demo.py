@@ -54,6 +54,7 @@ def evaluate_detectors(dataset_dir: Path, names: list[str], workdir: Path) -> di
     """Step 2: evaluate each detector; returns name -> metrics dict, or name -> reason it was skipped.
     Each detector's metrics are written to ``workdir/metrics-<name>.json``."""
     from ..dataset import load_dataset
+    from ..errors import CpdetectError
     from ..evaluate import evaluate
     from ..fileio import write_json_atomic
 
@@ -64,7 +65,14 @@ def evaluate_detectors(dataset_dir: Path, names: list[str], workdir: Path) -> di
         if det is None:
             results[name] = reason or "cannot be built"
             continue
-        metrics = evaluate(dataset, det)
+        try:
+            metrics = evaluate(dataset, det)
+        except CpdetectError:
+            raise  # the data, not the detector: report it
+        except Exception as exc:  # a detector that crashes must not stop the demo
+            first = str(exc).splitlines()[0] if str(exc) else ""
+            results[name] = f"failed while detecting: {type(exc).__name__}: {first}"
+            continue
         metrics["detector"] = name
         write_json_atomic(workdir / f"metrics-{name}.json", metrics)
         results[name] = metrics
