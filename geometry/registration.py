@@ -28,7 +28,9 @@ Method (the 3D version of star-tracker "asterism" matching; seed paper §5.2 don
 5. **Ambiguity**: probe triangles of the matched detected points are looked up again against *all*
    surveyed triangles; every hypothesis that refines to a pairing that maps some detected point to a
    *different* surveyed point and explains the data almost as well (pairs ≥ best − margin, rms ≤
-   factor × best) is an alternative, and the status becomes ``ambiguous``. Rotationally symmetric
+   factor × best) is an alternative, and the status becomes ``ambiguous``. Alternatives are looked
+   for at the best pairing's scale (± 2 % + 4·tol on the probe's longest side): a pairing of about the
+   same points at a different scale would need a self-similar layout. Rotationally symmetric
    layouts (a rectangle's corners, the paper's "table") are ambiguous; a layout that is only mirror
    symmetric is not (det R = +1), *except* when it is planar: flipping a plane over is a proper
    rotation, so a planar layout with an in-plane mirror line is ambiguous too (the flipped model would
@@ -325,12 +327,23 @@ class Problem:
             self._world_tris = self.world_triangles_of(np.arange(self.n_world_candidates))
         return self._world_tris
 
-    def model_triangles(self) -> Triangles:
-        """Detected triangles after the scale-free needle filter (model units)."""
+    def model_index(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Detected triangles for lookup: (triplets (T, 3), invariants (T, 2), model distance matrix),
+        after the scale-free needle filter, sorted by the first invariant. Vertex order is resolved
+        later, only for the candidates (``Triangles.build``)."""
         c = self.config
-        tris = Triangles.build(self.model, _candidate_triplets(self.model, c.full_index_limit, c.knn))
-        keep = (tris.sides[:, 2] <= 1.25 * c.max_side_ratio * tris.sides[:, 0]) & (tris.sides[:, 0] > 0)
-        return tris.select(keep)
+        trip = _candidate_triplets(self.model, c.full_index_limit, c.knn)
+        dist = _distance_matrix(self.model)
+        a, b, cc = trip[:, 0], trip[:, 1], trip[:, 2]
+        la, lb, lc = dist[b, cc], dist[cc, a], dist[a, b]
+        l0 = np.minimum(np.minimum(la, lb), lc)
+        l2 = np.maximum(np.maximum(la, lb), lc)
+        keep = (l2 <= 1.25 * c.max_side_ratio * l0) & (l0 > 0)
+        l0, l2 = l0[keep], l2[keep]
+        l1 = la[keep] + lb[keep] + lc[keep] - l0 - l2
+        inv = np.stack([l0 / l2, l1 / l2], axis=1)
+        order = np.argsort(inv[:, 0], kind="stable")
+        return trip[keep][order], inv[order], dist
 
 
 class HypothesisGenerator(Protocol):
@@ -361,13 +374,12 @@ class TripletIndex:
         return float(max(1, problem.n_world_candidates) * max(1, math.comb(len(problem.model), 3)))
 
     def batches(self, problem: Problem, rng: np.random.Generator) -> Iterator[np.ndarray]:
-        mt = problem.model_triangles()
-        if len(mt) == 0:
+        mtrip, minv, mdist = problem.model_index()
+        if len(mtrip) == 0:
             return
         # 1D index on the first invariant (sorted), filtered on the second: a box query in
         # (L0/L2, L1/L2) with a per-surveyed-triangle half-width 4·tol/L2 (worst-case invariant error)
-        order = np.argsort(mt.inv[:, 0], kind="stable")
-        inv0, inv1 = mt.inv[order, 0], mt.inv[order, 1]
+        inv0, inv1 = minv[:, 0], minv[:, 1]
         tol = problem.tol
         for sel in _largest_first(problem.world_longest_sides, self.first, self.chunk):
             wt = problem.world_triangles_of(sel)  # built lazily, largest first
@@ -385,7 +397,9 @@ class TripletIndex:
             keep = np.abs(inv1[di] - q[si, 1]) <= r[si]
             if not keep.any():
                 continue
-            yield from _expand(wt, mt, si[keep], order[di[keep]], tol, problem.config.batch)
+            si, di = si[keep], di[keep]
+            mt = Triangles.build(problem.model, mtrip[di], mdist)  # one row per candidate pair
+            yield from _expand(wt, mt, si, np.arange(len(di)), tol, problem.config.batch)
 
 
 def _largest_first(values: np.ndarray, first: int, chunk: int) -> Iterator[np.ndarray]:
@@ -591,11 +605,15 @@ def _alternatives(problem: Problem, best: _Pairing, rng: np.random.Generator,
     if len(probes) == 0:
         return []
     ptris = Triangles.build(problem.model, probes)
-    # Alternatives that explain about the same detected points have about the same scale: only surveyed
-    # triangles within a factor 4/3 of the probes' size (in metres) are candidates.
-    metric = best.sim.scale * ptris.sides[:, 2]
+    # An alternative that explains about the same detected points almost as well has the same scale to
+    # within noise (a 2 % different scale would move points by 2 % of the site's extent): only surveyed
+    # triangles whose longest side matches a probe's (in metres) within 4·tol + 2 % are candidates.
+    metric = best.sim.scale * ptris.sides[:, 2]  # (P,)
+    slack = 4.0 * problem.tol + 0.02 * metric
     longest = problem.world_longest_sides
-    band = (longest >= 0.75 * metric.min()) & (longest <= metric.max() / 0.75)
+    band = np.zeros(len(longest), dtype=bool)
+    for m, sl in zip(metric, slack):
+        band |= np.abs(longest - m) <= sl
     wt = problem.world_triangles_of(np.nonzero(band)[0])
     if len(wt) == 0:
         return []
@@ -606,7 +624,8 @@ def _alternatives(problem: Problem, best: _Pairing, rng: np.random.Generator,
     radius = 4.0 * problem.tol / (best.sim.scale * ptris.sides[:, 2])  # (P,)
     near = np.abs(wt.inv[:, 0, None] - ptris.inv[None, :, 0]) <= radius
     si, di = np.nonzero(near)
-    keep = np.abs(wt.inv[si, 1] - ptris.inv[di, 1]) <= radius[di]
+    keep = ((np.abs(wt.inv[si, 1] - ptris.inv[di, 1]) <= radius[di])
+            & (np.abs(wt.sides[si, 2] - metric[di]) <= slack[di]))
     si, di = si[keep], di[keep]
     if len(si):
         for hyp in _expand(wt, ptris, si, di, problem.tol, c.batch):
