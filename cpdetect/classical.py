@@ -59,7 +59,7 @@ class ClassicalSettings:
 
     min_radius_px: float = 8.0
     max_radius_frac: float = 1.0 / 3.0
-    min_contrast: float = 25.0
+    min_contrast: float = 18.0
     search_megapixels: float = 3.2
     max_candidates_per_level: int = 300
     min_score: float = 0.3
@@ -192,6 +192,25 @@ def _intersect(l1: np.ndarray, l2: np.ndarray) -> np.ndarray | None:
     return p[:2] / p[2]
 
 
+SCORE_FEATURES = ("q", "agree", "logC", "spread", "e_rel", "frac", "widths_min", "mid_share", "core_ratio",
+                  "log_r", "opp", "inverted", "alternations", "outer_mixed")
+# logistic model over SCORE_FEATURES (standardised by _SCORE_MEAN/_SCORE_STD), fitted on verified
+# candidates of generated images with *train*-split backgrounds (bench/fit_score.py); never on test.
+_SCORE_MEAN = np.array([0.85183, 0.86431, 4.2277, 0.15602, 0.034478, 0.98853, 0.77126, 0.18735, 0.95172, 2.7623,
+                        0.14777, 0.1338, 0.46536, 0.19573])
+_SCORE_STD = np.array([0.058894, 0.077247, 0.59908, 0.088661, 0.025071, 0.023449, 0.12561, 0.076036, 0.5165, 0.60778,
+                       0.11187, 0.15807, 0.22073, 0.09901])
+_SCORE_W = np.array([0.96329, 2.2681, -0.65906, -0.42501, -0.7962, 0.29851, 0.61288, -0.41217, 0.58725, 0.95542,
+                     -1.4198, -2.3292, -0.49793, -0.821])
+_SCORE_B = -8.6044
+
+
+def marker_score(feats: dict) -> float:
+    """P(marker) in [0, 1] from the verification features (logistic model, see above)."""
+    z = (np.array([feats[k] for k in SCORE_FEATURES], float) - _SCORE_MEAN) / _SCORE_STD
+    return float(1.0 / (1.0 + math.exp(-(float(z @ _SCORE_W) + _SCORE_B))))
+
+
 class _Verifier:
     """Checks candidates against the marker model; see the module doc, step 3."""
 
@@ -211,25 +230,44 @@ class _Verifier:
         ys = y + radii[:, None] * self.sin[None, :]
         return self.levels.sample(xs, ys, np.broadcast_to(spacing[:, None], xs.shape))
 
+    def is_xcorner(self, x: float, y: float, r_start: float, q_min: float = 0.75) -> bool:
+        """Quick test: do four small rings around (x, y) show a strong, steady four-sector pattern?"""
+        radii = r_start * 1.1 ** np.arange(4)
+        P = self.polar(x, y, radii, radii * (TWO_PI / self.N_THETA))
+        if np.isnan(P).any():
+            return False
+        mean = P.mean(1, keepdims=True)
+        std = P.std(1) + 1e-6
+        h2 = ((P - mean) * np.exp(-2j * self.theta)[None, :]).mean(1)
+        q = math.sqrt(2) * np.abs(h2) / std
+        phi = np.angle(h2)
+        return bool(q.min() >= q_min and np.abs(_wrap(phi - phi[0])).max() < math.radians(20))
+
     # -- step 3a: the four-sector core --------------------------------------------------------
     def core(self, x: float, y: float, r_start: float):
         """Sector structure from rings starting at ``r_start``: returns a dict or a reason string."""
+        e2 = np.exp(-2j * self.theta)
+
+        def harmonics(P):
+            mean = np.nanmean(P, 1, keepdims=True)
+            std = np.nanstd(P, 1) + 1e-6
+            h2 = np.nanmean((P - mean) * e2[None, :], 1)
+            return mean, std, math.sqrt(2) * np.abs(h2) / std, np.angle(h2)
+
+        # cheap first look: the four inner rings must already show two dark and two bright sectors
+        radii = r_start * 1.08 ** np.arange(4)
+        P = self.polar(x, y, radii, radii * (TWO_PI / self.N_THETA))
+        if np.isnan(P).any():
+            return "too close to the border"
+        _, _, q, phi = harmonics(P)
+        if q.min() < 0.55 or np.abs(_wrap(phi - phi[0])).max() > math.radians(25):
+            return "no four-sector pattern"
         r_hi = max(self.max_radius * 1.7, r_start * 2)
         n = int(math.ceil(math.log(r_hi / r_start) / math.log(1.08))) + 1
         radii = r_start * 1.08 ** np.arange(n)
         P = self.polar(x, y, radii, radii * (TWO_PI / self.N_THETA))
         valid_ring = ~np.isnan(P).any(1)
-        if not valid_ring[:3].all():
-            return "too close to the border"
-        mean = np.nanmean(P, 1, keepdims=True)
-        std = np.nanstd(P, 1) + 1e-6
-        e2 = np.exp(-2j * self.theta)
-        h2 = np.nanmean((P - mean) * e2[None, :], 1)
-        q = math.sqrt(2) * np.abs(h2) / std
-        phi = np.angle(h2)
-        # the core: consecutive rings from the start with a strong, steady second harmonic
-        if q[0] < 0.55:
-            return "no four-sector pattern"
+        mean, std, q, phi = harmonics(P)
         ref = phi[0]
         end = 0
         for i in range(1, n):
@@ -254,20 +292,25 @@ class _Verifier:
             bounds.append(self.theta[i - 1] + f * (TWO_PI / self.N_THETA))
         bounds = np.sort(np.mod(np.array(bounds), TWO_PI))
         widths = np.diff(np.concatenate([bounds, bounds[:1] + TWO_PI]))
-        if widths.min() < math.radians(25) or widths.max() > math.radians(155):
+        if widths.min() < math.radians(45) or widths.max() > math.radians(135):
             return "sector widths implausible"
+        # sharpness: share of outer-core samples between the two levels (a sinusoidal texture has
+        # about a third there, a sharp-edged marker little)
+        outer_core = P[:end + 1][radii[:end + 1] >= 0.4 * radii[end]]
         # sector levels (raw grey), skipping 8 degrees next to each boundary
         Praw = P[core]
         levels, spreads, dark_flags = [], [], []
         for k in range(4):
             a0, a1 = bounds[k], bounds[k] + widths[k]
             rel = np.mod(self.theta - a0, TWO_PI)
-            m = (rel > math.radians(8)) & (rel < widths[k] - math.radians(8))
+            m = (rel > math.radians(12)) & (rel < widths[k] - math.radians(12))
             if m.sum() < 2:
                 return "sector too narrow"
             vals = Praw[:, m]
             levels.append(float(np.nanmedian(vals)))
-            spreads.append(float(np.nanmedian(np.abs(vals - levels[-1]))))
+            # uniformity on the outer core rings (the inner ones are mixed by blur)
+            outer = vals[radii[core] >= 0.4 * radii[end]]
+            spreads.append(float(np.nanmedian(np.abs(outer - levels[-1]))) if outer.size else 0.0)
             mid = np.mod(a0 + 0.5 * widths[k], TWO_PI)
             dark_flags.append(T[int(mid / (TWO_PI / self.N_THETA)) % self.N_THETA] < 0)
         dark_flags = np.array(dark_flags)
@@ -280,10 +323,24 @@ class _Verifier:
             return f"contrast {C:.0f} below {self.s.min_contrast:.0f}"
         if abs(np.diff(lv[dark_flags])[0]) > 0.35 * C or abs(np.diff(lv[~dark_flags])[0]) > 0.35 * C:
             return "opposite sectors differ"
-        if max(spreads) > 0.2 * C:
+        if max(spreads) > 0.3 * C:
             return "sectors not uniform"
+        # wedges, not lines: every core ring must follow the sector pattern (a thin line crossing
+        # covers an angle that shrinks with the radius)
+        expect_bright = np.zeros(self.N_THETA, bool)
+        for kk in range(4):
+            if not dark_flags[kk]:
+                rel = np.mod(self.theta - bounds[kk], TWO_PI)
+                expect_bright |= rel < widths[kk]
+        inner_rings = radii[core] <= 0.65 * radii[end]
+        agree = ((Praw[inner_rings] > 0.5 * (D + B)) == expect_bright[None, :]).mean(1)
+        if agree.size and agree.min() < 0.7:
+            return "sectors are not wedges"
+        mid_share = float(np.mean((outer_core > D + 0.25 * C) & (outer_core < B - 0.25 * C))) if outer_core.size else 0.5
         return dict(radii=radii, P=P, core_end=end, bounds=bounds, widths=widths, dark=dark_flags,
-                    D=D, B=B, C=C, q=float(np.mean(q[core])))
+                    D=D, B=B, C=C, q=float(np.mean(q[core])), agree=float(agree.min()) if agree.size else 1.0,
+                    spread=max(spreads) / C, mid_share=mid_share,
+                    opp=max(abs(np.diff(lv[dark_flags])[0]), abs(np.diff(lv[~dark_flags])[0])) / C)
 
     # -- step 3b: boundaries, outline model, outer ring -----------------------------------------
     def ray_boundaries(self, P: np.ndarray, radii: np.ndarray, start: int, polarity_dark: bool,
@@ -297,30 +354,30 @@ class _Verifier:
         """
         sgn = 1.0 if polarity_dark else -1.0
         dev = sgn * (P - level)
+        nr, nt = P.shape
         beyond = dev > 0.25 * C
         beyond[:start] = False
-        nr, nt = P.shape
-        out = np.full(nt, np.nan)
-        steps = np.full(nt, np.nan)
         has = beyond.any(0)
         first = np.argmax(beyond, 0)
-        for j in np.nonzero(has)[0]:
-            i = int(first[j])
-            col = dev[:, j]
-            outside = float(np.nanmedian(col[i:min(i + 3, nr)]))
-            if not np.isfinite(outside):
-                continue
-            t = 0.5 * outside
-            i0 = i
-            while i0 > max(start - 1, 0) and col[i0 - 1] > t:
-                i0 -= 1
-            if i0 == 0 or not (col[i0 - 1] <= t < col[i0]) and not col[i0 - 1] <= t:
-                continue
-            v0, v1 = col[i0 - 1], col[i0]
-            f = (t - v0) / (v1 - v0) if v1 != v0 else 0.5
-            out[j] = radii[i0 - 1] + float(np.clip(f, 0, 1)) * (radii[i0] - radii[i0 - 1])
-            steps[j] = outside
-        return out, steps
+        cols = np.arange(nt)
+        # grey level just outside: mean of the three rings from the departure
+        idx = np.minimum(first[None, :] + np.arange(3)[:, None], nr - 1)
+        outside = np.nanmean(dev[idx, cols[None, :]], 0)
+        t = 0.5 * outside
+        # walk back while still above the mid-value (vectorised over a bounded number of steps)
+        i0 = first.copy()
+        for _ in range(4):
+            prev = np.maximum(i0 - 1, 0)
+            move = (i0 > max(start, 1)) & (dev[prev, cols] > t)
+            i0 = np.where(move, prev, i0)
+        ok = has & (i0 >= 1) & np.isfinite(outside)
+        i0c = np.maximum(i0, 1)
+        v0, v1 = dev[i0c - 1, cols], dev[i0c, cols]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            f = np.clip(np.where(v1 != v0, (t - v0) / (v1 - v0), 0.5), 0.0, 1.0)
+        r = radii[i0c - 1] + f * (radii[i0c] - radii[i0c - 1])
+        ok &= np.isfinite(r)
+        return np.where(ok, r, np.nan), np.where(ok, outside, np.nan)
 
     def sector_of(self, bounds: np.ndarray, widths: np.ndarray):
         """Per ray: sector index and relative position f in [0, 1] within it."""
@@ -365,7 +422,7 @@ class _Verifier:
         rays = inner & (core["dark"][sec] == pol_dark)
         bnd, _ = self.ray_boundaries(P, radii, 1, pol_dark, D if pol_dark else B, C)
         ok = rays & np.isfinite(bnd)
-        if ok.sum() < 0.7 * rays.sum():
+        if ok.sum() < 0.9 * rays.sum():
             return "marker boundary not found (fine pass)"
         # outline model per sector of the boundary polarity
         pts_by_sector = {}
@@ -392,23 +449,42 @@ class _Verifier:
         else:
             mtype = "circle"
         e_model = {"diagonal": e_line, "square": e_two, "circle": e_ell}[mtype]
-        if not e_model < 0.08 * r0 + 0.3:
+        if not e_model < 0.1 * r0 + 0.2:
             return f"outline does not fit ({mtype})"
         outline = self.outline(mtype, x, y, core, pol_dark, e1, e2, ell)
-        if outline is None:
+        if outline is None or not self._encloses(outline, x, y):
             return "outline degenerate"
         area = 0.5 * abs(np.dot(outline[:, 0], np.roll(outline[:, 1], -1))
                          - np.dot(outline[:, 1], np.roll(outline[:, 0], -1)))
         radius = math.sqrt(area / math.pi)
         if radius < 0.8 * self.s.min_radius_px or radius > self.max_radius * 1.1:
             return "size out of range"
-        reason = self.outer_ring(x, y, outline, D, B, C)
-        if reason:
-            return reason
-        fit_q = max(0.0, 1.0 - e_model / (0.08 * r0 + 0.3))
-        score = float(np.clip(min(1.0, core["q"] / 0.8) * min(1.0, C / (2.5 * self.s.min_contrast))
-                              * (0.5 + 0.5 * fit_q) * (0.6 + 0.4 * ok.sum() / max(rays.sum(), 1)), 0, 1))
+        outer = self.outer_ring(x, y, outline, D, B, C, ~core["dark"][sec])
+        if isinstance(outer, str):
+            return outer
+        feats = dict(q=core["q"], agree=core["agree"], logC=math.log(C), spread=core["spread"],
+                     e_rel=e_model / r0, frac=float(ok.sum() / max(rays.sum(), 1)),
+                     widths_min=float(core["widths"].min() / (0.5 * np.pi)), mid_share=core["mid_share"],
+                     core_ratio=float(min(core["radii"][core["core_end"]] / radius, 3.0)), log_r=math.log(radius),
+                     opp=core["opp"], **outer)
+        self.last_features = feats
+        score = marker_score(feats)
         return _Verified(x, y, mtype, radius, score, outline)
+
+    @staticmethod
+    def _encloses(poly: np.ndarray, x: float, y: float) -> bool:
+        import cv2
+
+        return cv2.pointPolygonTest(poly.astype(np.float32).reshape(-1, 1, 2), (float(x), float(y)), False) > 0
+
+    @staticmethod
+    def _hull(pts: np.ndarray, x: float, y: float) -> np.ndarray:
+        """Convex hull of the boundary points and their point reflection through the centre (the
+        pattern is point symmetric to first order): a fallback outline."""
+        import cv2
+
+        both = np.concatenate([pts, 2 * np.array([x, y]) - pts]).astype(np.float32)
+        return cv2.convexHull(both).reshape(-1, 2).astype(np.float64)
 
     def outline(self, mtype, x, y, core, pol_dark, e1, e2, ell) -> np.ndarray | None:
         import cv2
@@ -448,8 +524,11 @@ class _Verifier:
             return None
         return pts
 
-    def outer_ring(self, x, y, outline, D, B, C) -> str:
-        """Beyond the outline (1.3..1.6 times its distance) the checker must not continue."""
+    def outer_ring(self, x, y, outline, D, B, C, bright_ray: np.ndarray) -> str | dict:
+        """Around the outline the checker must not continue: just outside (1.12 and 1.25 times the
+        outline distance) the surroundings of dark sectors and of bright sectors must not both be
+        inverted (bright next to dark, dark next to bright: a checkerboard or a tag's bit cells), and
+        farther out (1.35, 1.6) the ring must not alternate between the marker's two levels."""
         ang = self.theta
         # distance from the centre to the outline polygon along each ray
         dist = np.full(self.N_THETA, np.nan)
@@ -469,11 +548,21 @@ class _Verifier:
             dist[j] = best
         if not np.isfinite(dist).all():
             return "outline does not enclose the centre"
-        radii = np.array([1.35, 1.6])
+        radii = np.array([1.12, 1.25, 1.35, 1.6])
         xs = x + radii[:, None] * dist[None, :] * self.cos[None, :]
         ys = y + radii[:, None] * dist[None, :] * self.sin[None, :]
         V = self.levels.sample(xs, ys, np.maximum(dist[None, :] * 0.087, 1.0) * np.ones_like(xs))
-        for row in V:
+        inverted, alt_max, mixed = 0.0, 0.0, 0.0
+        for row in V[:2]:
+            fin = np.isfinite(row)
+            if fin.sum() < 0.5 * self.N_THETA:
+                continue
+            dark_next_to_bright = np.mean(row[fin & bright_ray] < D + 0.3 * C) if (fin & bright_ray).any() else 0
+            bright_next_to_dark = np.mean(row[fin & ~bright_ray] > B - 0.3 * C) if (fin & ~bright_ray).any() else 0
+            inverted = max(inverted, float(min(dark_next_to_bright, bright_next_to_dark)))
+            if min(dark_next_to_bright, bright_next_to_dark) > 0.6:
+                return "inverted surroundings (checkerboard or tag)"
+        for row in V[2:]:
             row = row[np.isfinite(row)]
             if row.size < 0.5 * self.N_THETA:
                 continue
@@ -483,9 +572,11 @@ class _Verifier:
                 continue
             alternations = int(np.sum(seq != np.roll(seq, 1)))
             fd, fb = np.mean(cls == -1), np.mean(cls == 1)
-            if alternations >= 6 and fd > 0.15 and fb > 0.15:
+            alt_max = max(alt_max, min(alternations, 12) / 12.0)
+            mixed = max(mixed, float(min(fd, fb)))
+            if alternations >= 8 and fd > 0.3 and fb > 0.3:
                 return "checker continues beyond the outline (checkerboard or tag)"
-        return ""
+        return dict(inverted=inverted, alternations=alt_max, outer_mixed=mixed)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -542,12 +633,15 @@ class ClassicalDetector:
         pyramid = build_pyramid(search)
         full = gray.astype(np.float32) if k > 1 else None
         levels = _Levels(full, k, pyramid)
-        cands = find_candidates(pyramid, 0.5 * s.min_contrast, s.max_candidates_per_level)
+        cands = find_candidates(pyramid, 0.6 * s.min_contrast, s.max_candidates_per_level)
         verifier = _Verifier(levels, s, (w, h))
         accepted: list[tuple[_Verified, Any]] = []
         rejected = 0
         # coarse levels first: big markers are settled before their centres show again at fine levels
         cands.sort(key=lambda c: (-c.level, -c.contrast))
+        cand_xy = np.array([[(c.x + 0.5) * k - 0.5, (c.y + 0.5) * k - 0.5] for c in cands]).reshape(-1, 2)
+        cand_c = np.array([c.contrast for c in cands])
+        cand_scale = np.array([k * 2.0 ** c.level for c in cands])
         for c in cands:
             scale = k * 2 ** c.level
             cx, cy = (c.x + 0.5) * k - 0.5, (c.y + 0.5) * k - 0.5
@@ -556,6 +650,14 @@ class ClassicalDetector:
             r_start = max(1.5, 1.5 * scale)
             v = verifier.verify(cx, cy, r_start)
             if isinstance(v, str):
+                rejected += 1
+                continue
+            # the single saddle: no other strong X-corner around it (checkerboards, tag bit cells)
+            dn = np.hypot(cand_xy[:, 0] - v.x, cand_xy[:, 1] - v.y)
+            near = np.nonzero((dn > 0.4 * v.radius) & (dn < 1.7 * v.radius)
+                              & (cand_c >= 0.5 * c.contrast) & (cand_scale <= 0.25 * v.radius))[0]
+            if any(verifier.is_xcorner(cand_xy[j, 0], cand_xy[j, 1], max(1.5, 0.15 * v.radius))
+                   for j in near[np.argsort(-cand_c[near])][:8]):
                 rejected += 1
                 continue
             ref = refine_center(gray, v.x, v.y, v.radius, method=s.refine_method,
