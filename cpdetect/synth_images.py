@@ -70,6 +70,7 @@ class SynthImageOptions:
     texture_prob: float = 0.3
     texture_max: float = 0.35
     occlusion_prob: float = 0.15
+    border_cut_prob: float = 0.08
     occlusion_max: float = 0.4
     gradient_max: float = 0.5
     level: tuple[float, float] = (0.55, 1.25)
@@ -110,8 +111,8 @@ class SynthImageOptions:
         for k in self.confuser_kinds:
             if k not in CONFUSER_KINDS:
                 raise ValueError(f"unknown confuser {k!r}; valid: {', '.join(CONFUSER_KINDS)}")
-        for name in ("empty_prob", "colour_prob", "margin_prob", "texture_prob", "occlusion_prob", "shadow_prob",
-                     "defocus_prob", "motion_prob", "occlusion_max"):
+        for name in ("empty_prob", "colour_prob", "margin_prob", "texture_prob", "occlusion_prob",
+                     "border_cut_prob", "shadow_prob", "defocus_prob", "motion_prob", "occlusion_max"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1]")
 
@@ -303,6 +304,7 @@ class _Placed:
     centre: np.ndarray
     extent: float  # radius of the sheet's bounding circle about the centre, pixels
     pose: _Pose
+    inside: bool = True  # the whole sheet lies inside the image
 
 
 def _place_markers(rng: np.random.Generator, opt: SynthImageOptions, K: np.ndarray) -> list[_Placed]:
@@ -320,23 +322,34 @@ def _place_markers(rng: np.random.Generator, opt: SynthImageOptions, K: np.ndarr
             margin = float(rng.uniform(*opt.margin_frac))
         spec = MarkerSpec(mtype, size_m=1.0, margin_m=margin)
         # small markers are the hard and common case: log-uniform radius
+        cut = rng.random() < opt.border_cut_prob
         for _attempt in range(25):
             r = math.exp(rng.uniform(lo, hi))
-            xy = (rng.uniform(0, w - 1), rng.uniform(0, h - 1))
+            if cut:  # centre inside the image, close enough to an edge that the frame cuts the marker
+                inset = rng.uniform(2.0, max(0.8 * r, 2.5))
+                side = int(rng.integers(4))
+                along = rng.uniform(inset, (h if side < 2 else w) - 1 - inset)  # y on left/right sides
+                if side >= 2:
+                    xy = (along, inset) if side == 2 else (along, h - 1 - inset)
+                else:
+                    xy = (inset, along) if side == 0 else (w - 1 - inset, along)
+            else:
+                xy = (rng.uniform(0, w - 1), rng.uniform(0, h - 1))
             pose = _random_pose(rng, K, xy, opt.tilt_max_deg)
             H = _homography_at_radius(spec, K, pose, r)
             rr = projected_radius(spec, H)
             if not (opt.radius_min_px - 1e-6 <= rr <= opt.radius_max_px + 1e-6) or not _in_front(spec, K, H):
                 continue
             sheet = apply_homography(H, spec.outline(64, with_margin=True))
-            if sheet[:, 0].min() < 1 or sheet[:, 1].min() < 1 or sheet[:, 0].max() > w - 2 \
-                    or sheet[:, 1].max() > h - 2:
+            inside = not (sheet[:, 0].min() < 1 or sheet[:, 1].min() < 1 or sheet[:, 0].max() > w - 2
+                          or sheet[:, 1].max() > h - 2)
+            if not inside and not cut:
                 continue
             c = np.array(xy)
             extent = float(np.max(np.hypot(*(sheet - c).T)))
             if any(np.hypot(*(c - q.centre)) < extent + q.extent + 2.0 for q in placed):
                 continue
-            placed.append(_Placed(spec, H, c, extent, pose))
+            placed.append(_Placed(spec, H, c, extent, pose, inside))
             break
     return placed
 
@@ -461,7 +474,9 @@ def generate_image(index: int, seed: int, opt: SynthImageOptions, lib: Backgroun
             x=float(q.centre[0]), y=float(q.centre[1]), type=q.spec.type, radius_px=radius,
             extra={"tilt_deg": round(q.pose.tilt_deg, 3), "margin": round(q.spec.margin_m, 4),
                    "contrast": round(float(np.mean(b - d)), 2), "texture": round(tex_amount, 3),
-                   "occluded_frac": round(occluded_frac, 4)}))
+                   "occluded_frac": round(occluded_frac, 4),
+                   "visible_frac": 1.0 if q.inside else round(min(float(pattern.sum()) / (math.pi * radius ** 2),
+                                                                  1.0), 4)}))
 
     # illumination: level, gradient, shadow
     level = rng.uniform(*opt.level)

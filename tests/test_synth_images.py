@@ -90,20 +90,37 @@ def test_mask_area_matches_radius_for_unoccluded_markers(samples):
     checked = 0
     for s in items:
         n, lab = cv2.connectedComponents((s.mask > 0).astype(np.uint8), connectivity=8)
-        centre_labels = set()
+        centre_labels = {lab[int(round(m.y)), int(round(m.x))] for m in s.markers}
         for m in s.markers:
-            lab_c = lab[int(round(m.y)), int(round(m.x))]
-            if m.extra["occluded_frac"] > 0:
+            if m.extra["occluded_frac"] > 0 or m.extra["visible_frac"] < 1:
                 continue
+            lab_c = lab[int(round(m.y)), int(round(m.x))]
             assert lab_c > 0, "the aiming point of an unoccluded marker is a marker pixel"
             area = np.count_nonzero(lab == lab_c)
             assert 0.95 < area / (np.pi * m.radius_px ** 2) < 1.05
-            centre_labels.add(lab_c)
             checked += 1
         if all(m.extra["occluded_frac"] == 0 for m in s.markers):
             # no mask pixel away from a marker (confusers are not markers)
             assert set(range(1, n)) == centre_labels
     assert checked > 30
+
+
+def test_markers_cut_by_the_frame_keep_centre_inside_and_visible_share(lib):
+    opt = SynthImageOptions(border_cut_prob=1.0, occlusion_prob=0.0)
+    yy, xx = np.mgrid[0:opt.height, 0:opt.width]
+    shares = []
+    for i in range(8):
+        s = generate_image(i, 6, opt, lib)
+        for m in s.markers:
+            assert 0 <= m.x <= opt.width - 1 and 0 <= m.y <= opt.height - 1
+            v = m.extra["visible_frac"]
+            alone = all(np.hypot(q.x - m.x, q.y - m.y) > 3 * (m.radius_px + q.radius_px)
+                        for q in s.markers if q is not m)
+            if v < 1 and alone:
+                shares.append(v)
+                area = np.count_nonzero(s.mask[np.hypot(xx - m.x, yy - m.y) < 3 * m.radius_px])
+                assert 0.97 < area / (np.pi * m.radius_px ** 2 * v) < 1.03
+    assert len(shares) >= 8 and min(shares) < 0.8
 
 
 def test_truth_is_where_the_pixels_put_the_x_corner(lib):
@@ -140,7 +157,8 @@ def test_occlusion_removes_mask_pixels(lib):
             if f > 0 and alone:
                 fracs.append(f)
                 area = np.count_nonzero(s.mask[np.hypot(xx - m.x, yy - m.y) < 3 * m.radius_px])
-                assert 0.97 < area / (np.pi * m.radius_px ** 2 * (1 - f)) < 1.03
+                expected = np.pi * m.radius_px ** 2 * m.extra["visible_frac"] * (1 - f)
+                assert 0.97 < area / expected < 1.03
     assert len(fracs) >= 4 and max(fracs) > 0.2
 
 
