@@ -114,16 +114,18 @@ class HtmlReport:
         self.parts.append(f'<figure><img class="{css_class}" alt="{html.escape(caption)}" '
                           f'src="{png_data_uri(png)}">{cap}</figure>')
 
-    def gallery(self, items: Sequence[GalleryItem]) -> None:
+    def gallery(self, items: Sequence[GalleryItem], rejectable: bool = True) -> None:
+        """Crops in a grid; with ``rejectable`` each has a "reject" box and the grid a download button."""
         tiles = []
         for it in items:
             attrs = (f'data-id="{html.escape(it.id)}" data-image="{html.escape(it.image)}" '
                      f'data-x="{it.x:.3f}" data-y="{it.y:.3f}"')
+            box = (f'<label><input type="checkbox" class="reject" {attrs} onchange="cpdToggle(this)"> reject</label>'
+                   if rejectable else "")
             tiles.append(f'<div class="tile"><img class="crop" alt="{html.escape(it.id)}" src="{png_data_uri(it.png)}">'
-                         f'<div>{html.escape(it.caption or it.image)}</div>'
-                         f'<label><input type="checkbox" class="reject" {attrs} onchange="cpdToggle(this)"> reject</label></div>')
-        self.parts.append('<button onclick="cpdDownloadRejects()">Download rejects.json</button>'
-                          f'<div class="gallery">{"".join(tiles)}</div>')
+                         f'<div>{html.escape(it.caption or it.image)}</div>{box}</div>')
+        button = '<button onclick="cpdDownloadRejects()">Download rejects.json</button>' if rejectable else ""
+        self.parts.append(f'{button}<div class="gallery">{"".join(tiles)}</div>')
 
     def render(self) -> str:
         return ("<!DOCTYPE html><html lang=\"en\"><head><meta charset=\"utf-8\">"
