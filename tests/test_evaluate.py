@@ -199,3 +199,18 @@ def test_demo_generates_and_evaluates_skipping_broken_detectors(tmp_path, monkey
     assert m["images"] == 3 and m["tp"] == 0 and m["fn"] == m["markers"]
     assert m["recall"] == (0.0 if m["markers"] else None) and m["precision"] is None
     assert load_dataset(tmp_path / "images-set").images[0].file == "images/000000.jpg"
+
+
+def test_low_resolution_probability_map_is_resampled(dataset):
+    Oracle = _oracle_factory(dataset)
+
+    class HalfRes(Oracle):
+        def detect(self, image):
+            res = super().detect(image)
+            p = res.probability[::2, ::2].copy()  # a map at half the image size
+            return DetectionResult(res.detections, res.image_size, probability=p)
+
+    m = evaluate(dataset, HalfRes(p=1.0))
+    px = m["pixel"]
+    assert px["images"] == 6
+    assert 0.8 < px["iou"] < 0.98 and 0.88 < px["f1"] < 0.99 and 0.95 < px["ap"] < 1.0

@@ -201,3 +201,33 @@ def test_cli_bad_arguments_one_line(tmp_path, capsys, argv):
     rc = main(["synth", "images", "--out", str(tmp_path / "x")] + argv)
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "error" in err[0]
+
+
+def test_background_manifest_errors(tmp_path):
+    from cpdetect.errors import InputError, UsageError
+
+    with pytest.raises(InputError, match="manifest not found"):
+        list_backgrounds(folder=tmp_path)
+    (tmp_path / "MANIFEST.tsv").write_text("file\tcategory\nx.jpg\tbrick\n")
+    with pytest.raises(InputError, match="missing") as e:
+        list_backgrounds(folder=tmp_path)
+    assert "x.jpg" in str(e.value)
+    (tmp_path / "MANIFEST.tsv").write_text("file\tcategory\nx.jpg\t\n")
+    with pytest.raises(InputError, match="MANIFEST.tsv:2"):
+        list_backgrounds(folder=tmp_path)
+    with pytest.raises(UsageError, match="split"):
+        list_backgrounds("validation")
+
+
+def test_rerun_replaces_markers_json_last(tmp_path):
+    write_synth_images(tmp_path, 3, 0, SynthImageOptions(width=160, height=120))
+    first = (tmp_path / "markers.json").read_bytes()
+
+    def stop(k):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        write_synth_images(tmp_path, 3, 1, SynthImageOptions(width=160, height=120), progress=stop)
+    assert not (tmp_path / "markers.json").exists()  # an interrupted run leaves no stale truth
+    write_synth_images(tmp_path, 3, 0, SynthImageOptions(width=160, height=120))
+    assert (tmp_path / "markers.json").read_bytes() == first
