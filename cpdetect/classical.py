@@ -391,6 +391,15 @@ class _Verifier:
         return sec, f
 
     def verify(self, x: float, y: float, r_start: float) -> _Verified | str:
+        """Check the candidate at (x, y) (full-res pixels): a :class:`_Verified` or the reason why not."""
+        import warnings
+
+        # rings that leave the image are NaN; all-NaN reductions are expected and handled
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return self._verify(x, y, r_start)
+
+    def _verify(self, x: float, y: float, r_start: float) -> _Verified | str:
         core = self.core(x, y, r_start)
         if isinstance(core, str):
             return core
@@ -591,6 +600,7 @@ class ClassicalDetector:
 
     name = "classical"
     Settings = ClassicalSettings
+    accepts_path = True
 
     def __init__(self, **settings: Any):
         self.settings = settings_from_dataclass(ClassicalSettings, settings)
