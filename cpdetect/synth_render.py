@@ -424,6 +424,5 @@ def fit_xcorner(image: np.ndarray, guess: tuple[float, float], radius: float, in
     return res.x[:2].copy()
 
 
-__all__ = ["Appearance", "ImageEffects", "SiteRenderer", "sample_texture", "apply_effects", "fit_xcorner", "subpixel_pattern",
-           "box_edge_coverage",
-           "transform_points", "MISS", "GROUND"]
+__all__ = ["Appearance", "ImageEffects", "SiteRenderer", "sample_texture", "apply_effects", "fit_xcorner",
+           "subpixel_pattern", "box_edge_coverage", "transform_points", "MISS", "GROUND"]

@@ -241,11 +241,16 @@ def build_site(settings: SiteSettings) -> Site:
         return sum(probe.visible(camera, pose, points, normals, 60.0, border).astype(np.int32)
                    for _, pose in poses)
 
+    def glimpse_count(points, normals):  # hidden markers: not even at grazing angles or just off-image
+        border = -0.15 * camera.width
+        return sum(probe.visible(camera, pose, points, normals, 89.0, border).astype(np.int32)
+                   for _, pose in poses)
+
     request = PlacementRequest(regular=settings.markers, unsurveyed=settings.unsurveyed_markers,
                                missing=settings.missing_markers, hidden=settings.hidden_surveyed,
                                min_views=min_views)
     try:
-        placed = place_markers(mesh, request, rng["markers"], view_count)
+        placed = place_markers(mesh, request, rng["markers"], view_count, glimpse_count=glimpse_count)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     placed = _name_markers(placed)

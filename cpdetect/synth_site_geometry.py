@@ -317,11 +317,13 @@ def candidate_points(mesh: PierMesh, rng: np.random.Generator, n: int, kinds=("s
 
 
 def place_markers(mesh: PierMesh, request: PlacementRequest, rng: np.random.Generator, view_count,
-                  max_tries: int = 100) -> list[PlacedMarker]:
+                  max_tries: int = 100, glimpse_count=None) -> list[PlacedMarker]:
     """Place markers asymmetrically on the side faces of the pier.
 
     ``view_count(points (n, 3), normals (n, 3)) -> (n,) int`` counts the images that see a point
-    well. Regular, unsurveyed and missing markers need ``min_views`` views; hidden ones need zero.
+    well. Regular, unsurveyed and missing markers need ``min_views`` views; hidden ones need zero
+    views by ``glimpse_count`` (same signature; a looser test, e.g. grazing views and points just
+    outside the image, default ``view_count``).
     Markers keep ``edge_clearance`` metres between their printed sheet and the face's edges and
     ``min_separation`` between centres; types cycle so all three appear; sizes are uniform in
     ``size_range``; in-plane rotations uniform. The whole layout (and its surveyed subset) is redrawn
@@ -346,8 +348,9 @@ def place_markers(mesh: PierMesh, request: PlacementRequest, rng: np.random.Gene
         points[sel] = mesh.faces[fi].from_plane(uv[sel])
         normals[sel] = mesh.faces[fi].normal
     counts = np.asarray(view_count(points, normals))
+    glimpses = counts if glimpse_count is None or request.hidden == 0 else np.asarray(glimpse_count(points, normals))
     for _ in range(max_tries):
-        placed = _try_layout(mesh, request, rng, (faces, uv, counts), roles, types)
+        placed = _try_layout(mesh, request, rng, (faces, uv, counts, glimpses), roles, types)
         if placed is None:
             continue
         centers = np.array([m.center for m in placed])
@@ -360,7 +363,7 @@ def place_markers(mesh: PierMesh, request: PlacementRequest, rng: np.random.Gene
 
 
 def _try_layout(mesh, request, rng, candidates, roles, types):
-    faces, uv, counts = candidates
+    faces, uv, counts, glimpses = candidates
     sizes = rng.uniform(*request.size_range, size=len(roles))
     placed: list[PlacedMarker] = []
     used = np.zeros(len(faces), bool)
@@ -368,7 +371,7 @@ def _try_layout(mesh, request, rng, candidates, roles, types):
         margin = 0.0 if mtype == "circle" else float(rng.uniform(0.0, 0.15)) * sizes[k]
         spec = MarkerSpec(mtype, size_m=float(sizes[k]), margin_m=margin)
         want_hidden = role == "hidden"
-        ok = (counts == 0) if want_hidden else (counts >= request.min_views)
+        ok = (glimpses == 0) if want_hidden else (counts >= request.min_views)
         ok &= ~used
         order = rng.permutation(np.nonzero(ok)[0])
         chosen = None

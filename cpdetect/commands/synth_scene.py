@@ -39,7 +39,8 @@ def register(kinds) -> None:
                    help="surveyed, printed markers placed where no camera sees them")
     p.add_argument("--noise", action=argparse.BooleanOptionalAction, default=True,
                    help="photometric effects and cloud noise (--no-noise: clean images, exact cloud)")
-    p.add_argument("--distortion", action=argparse.BooleanOptionalAction, default=True, help="lens distortion (--no-distortion)")
+    p.add_argument("--distortion", action=argparse.BooleanOptionalAction, default=True,
+                   help="lens distortion (--no-distortion)")
     p.add_argument("--pose-noise", type=float, default=0.0,
                    help="sigma in metres of the camera centres written to sparse/ (rotation sigma "
                         "pose-noise/2 m radians); default 0: true poses")
