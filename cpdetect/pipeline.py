@@ -48,7 +48,7 @@ log = logging.getLogger(__name__)
 
 STAGE_FORMAT = "cpdetect.georef-stage/1"
 # bumped whenever what a stage computes changes, so that stale stage files are recomputed
-ALGORITHM_VERSION = 3
+ALGORITHM_VERSION = 4
 REPORT_FORMAT = "cpdetect.georef-report/1"
 DETECTIONS_FORMAT = "cpdetect.detections/1"
 MODES = ("auto", "cloud", "ray", "triangulate")
@@ -762,19 +762,23 @@ def _enough_support(m, settings, dropped) -> bool:
 
 
 def _merge_duplicates(markers, dropped):
-    """Two candidates that triangulate within one marker size are the same marker: keep the better."""
-    order = sorted(range(len(markers)), key=lambda k: -sum(o["inlier"] for o in markers[k]["observations"]))
+    """Candidates that triangulate to the same point (within a quarter of the smaller marker radius:
+    they refined onto the same X-corner) are one marker: keep the one with the best quality (or, before
+    qualities exist, the most inlier views). A nearby but distinct X-corner is *not* merged away."""
+    def rank(m):
+        return m.get("quality", sum(o["inlier"] for o in m["observations"]))
+
+    order = sorted(range(len(markers)), key=lambda k: -rank(markers[k]))
     kept = []
     for k in order:
         p = np.asarray(markers[k]["model_point"])
         r = markers[k]["radius_model"]
-        if any(np.linalg.norm(p - np.asarray(markers[q]["model_point"])) < 2 * max(r, markers[q]["radius_model"])
+        if any(np.linalg.norm(p - np.asarray(markers[q]["model_point"])) < 0.25 * min(r, markers[q]["radius_model"])
                for q in kept):
             dropped.append({"candidate": markers[k]["candidate"], "reason": "duplicate of another candidate"})
             continue
         kept.append(k)
     return [markers[k] for k in sorted(kept)]
-
 
 def _adjust(scene, markers, settings, radius):
     from geometry.adjust import MarkerObservation, bundle_adjust
