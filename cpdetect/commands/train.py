@@ -1,0 +1,69 @@
+"""``cpdetect train --data DIR --out MODELDIR``: train the learned (HMA) marker segmenter."""
+from __future__ import annotations
+
+import logging
+
+log = logging.getLogger(__name__)
+
+
+def register(sub) -> None:
+    p = sub.add_parser("train", help="train the learned marker detector (HMA over HRNet-OCR, RMI loss)",
+                       description="Train the 'hma' detector's network on a marker dataset (the layout "
+                                   "'cpdetect synth images' writes, or your own annotated photos with "
+                                   "masks). MODELDIR receives config.json + model.pt (best by validation "
+                                   "IoU), checkpoint.pt (for --resume) and train_log.jsonl. CPU by "
+                                   "default, CUDA when present.")
+    p.add_argument("--data", required=True, help="training dataset folder (markers.json, images/, masks/)")
+    p.add_argument("--out", required=True, help="model folder to write")
+    p.add_argument("--val-data", help="validation dataset folder (default: hold out --val-frac of --data)")
+    p.add_argument("--val-frac", type=float, default=0.05, help="share of --data held out (default 0.05)")
+    p.add_argument("--model", default="w16_tiny",
+                   help="architecture preset: w16_tiny, w18s1_lite, or from-init to take --init's "
+                        "config (default w16_tiny)")
+    p.add_argument("--init", help="checkpoint (model folder, checkpoint.pt or state dict) to start from; "
+                                  "layers that match are loaded, the others re-initialised and listed")
+    p.add_argument("--freeze-backbone", action="store_true", help="train only the OCR and the heads")
+    p.add_argument("--epochs", type=int, default=30, help="epochs (default 30)")
+    p.add_argument("--iters-per-epoch", type=int, default=200, help="iterations per epoch (default 200)")
+    p.add_argument("--batch", type=int, default=8, help="crops per iteration (default 8)")
+    p.add_argument("--crop", type=int, default=256, help="crop side in pixels (default 256)")
+    p.add_argument("--lr", type=float, default=0.01, help="SGD learning rate (default 0.01, poly decay)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda, cuda:1 ...")
+    p.add_argument("--threads", type=int, default=2, help="CPU threads (default 2)")
+    p.add_argument("--checkpoint-minutes", type=float, default=5.0, help="minutes between checkpoints")
+    p.add_argument("--resume", action="store_true", help="continue from MODELDIR/checkpoint.pt")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ..errors import UsageError
+
+    try:
+        from learned.train import TrainConfig, train
+    except ModuleNotFoundError as exc:
+        if exc.name == "torch":
+            raise UsageError("'cpdetect train' needs PyTorch: pip install 'cpdetect[learned]'") from None
+        raise
+    for name in ("epochs", "iters_per_epoch", "batch", "crop", "threads"):
+        if getattr(args, name) < 1:
+            raise UsageError(f"--{name.replace('_', '-')} must be >= 1")
+    if not 0 <= args.val_frac < 1:
+        raise UsageError("--val-frac must be in [0, 1)")
+    if args.crop % 32:
+        raise UsageError("--crop must be a multiple of 32")
+    if args.model == "from-init" and not args.init:
+        raise UsageError("--model from-init needs --init")
+    cfg = TrainConfig(data=args.data, out=args.out, val_data=args.val_data, model=args.model, init=args.init,
+                      freeze_backbone=args.freeze_backbone, epochs=args.epochs,
+                      iters_per_epoch=args.iters_per_epoch, batch=args.batch, crop=args.crop, lr=args.lr,
+                      val_frac=args.val_frac, seed=args.seed, device=args.device, threads=args.threads,
+                      checkpoint_minutes=args.checkpoint_minutes)
+    try:
+        res = train(cfg, resume=args.resume)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    best = "n/a" if res.best_iou is None else f"{res.best_iou:.4f}"
+    log.info("trained %d iterations in %.0f s; best validation IoU %s; model in %s", res.iterations,
+             res.seconds, best, res.out)
+    return 0

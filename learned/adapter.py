@@ -1,0 +1,262 @@
+"""The learned detector ``hma``: HMA probability map -> marker instances with refined centres.
+
+Steps for one image (uint8 gray or BGR; a path is read as gray):
+
+1. P(marker) by :func:`learned.infer.probability_map` (downscale to ``max_side``, tiles, N-scale HMA),
+   through torch or OpenCV DNN (``backend``; "auto" = torch when installed, else OpenCV on model.onnx);
+2. instances: connected components of P >= ``threshold`` larger than ``min_radius_px``;
+3. centre: the probability-weighted centroid, mapped to image pixels, then refined on the
+   full-resolution image with :func:`cpdetect.refine.refine_center` (``refine``; "none" skips it);
+4. type by shape: ellipse vs quadrilateral fit of the upsampled component outline (circle vs
+   square-sheet), then for quadrilaterals the phase of the checker's dark/bright boundaries relative
+   to the outline edges (square: boundaries parallel to the edges; diagonal: through the corners).
+
+This module imports torch only through the torch backend, so the detector runs where torch is not
+installed (OpenCV backend on the shipped model.onnx).
+"""
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from cpdetect.detector import as_gray_uint8, settings_from_dataclass
+from cpdetect.types import DetectionResult, MarkerDetection
+
+DEFAULT_MODEL_DIR = Path(__file__).resolve().parent / "weights" / "default"
+
+
+def default_model_dir() -> Path:
+    """The shipped model folder (config.json, model.pt and/or model.onnx)."""
+    return DEFAULT_MODEL_DIR
+
+
+def shipped_weights_present() -> bool:
+    d = DEFAULT_MODEL_DIR
+    return (d / "config.json").exists() and ((d / "model.pt").exists() or (d / "model.onnx").exists())
+
+
+@dataclass(frozen=True)
+class HMASettings:
+    """Settings of the ``hma`` detector.
+
+    model_dir: model folder (None = the shipped weights). scales: inference scales (must contain 1.0),
+    e.g. (1.0,) or (0.5, 1.0). backend: "auto", "torch" or "opencv". device: torch device.
+    threshold: P(marker) cut for instances. max_side: the longest side the network sees (pixels; the
+    image is downscaled to it; None = full resolution). tile / overlap: tiling of the processing image
+    (pixels) for bounded memory. min_radius_px: smallest instance kept (equal-area radius, image
+    pixels). refine: centre refinement method of cpdetect.refine ("auto", "symmetry", "saddle",
+    "hough") or "none". threads: torch CPU threads (None = leave as is).
+    """
+
+    model_dir: str | None = None
+    scales: tuple[float, ...] = (1.0,)
+    backend: str = "auto"
+    device: str = "cpu"
+    threshold: float = 0.5
+    max_side: int | None = 2048
+    tile: int = 2048
+    overlap: int = 96
+    min_radius_px: float = 3.0
+    refine: str = "auto"
+    threads: int | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "scales", tuple(float(s) for s in self.scales))
+        if 1.0 not in self.scales or min(self.scales) <= 0:
+            raise ValueError(f"scales must be positive and include 1.0, got {self.scales}")
+        if self.backend not in ("auto", "torch", "opencv"):
+            raise ValueError(f"backend must be auto, torch or opencv, got {self.backend!r}")
+        if not 0.0 < self.threshold < 1.0:
+            raise ValueError("threshold must be in (0, 1)")
+        if self.max_side is not None and self.max_side < 64:
+            raise ValueError("max_side must be >= 64 (or None)")
+        if self.tile < 128 or self.overlap < 0 or self.tile <= 2 * self.overlap:
+            raise ValueError("need tile >= 128 and 0 <= 2 * overlap < tile")
+        if self.refine not in ("auto", "symmetry", "saddle", "hough", "none"):
+            raise ValueError(f"unknown refine method {self.refine!r}")
+
+
+def _quad_from_hull(hull: np.ndarray) -> np.ndarray | None:
+    peri = cv2.arcLength(hull, True)
+    for eps in (0.02, 0.03, 0.045, 0.06, 0.08, 0.1):
+        approx = cv2.approxPolyDP(hull, eps * peri, True)
+        if len(approx) == 4:
+            return approx.reshape(4, 2).astype(np.float32)
+        if len(approx) < 4:
+            return None
+    return None
+
+
+def _iou_with_polygon(mask: np.ndarray, fill: callable) -> float:
+    canvas = np.zeros_like(mask)
+    fill(canvas)
+    inter = np.count_nonzero(canvas & mask)
+    union = np.count_nonzero(canvas | mask)
+    return inter / union if union else 0.0
+
+
+def classify_shape(mask: np.ndarray) -> tuple[str, np.ndarray | None]:
+    """"circle" or "quad" for a binary component mask (uint8 0/1), and the quadrilateral (4, 2) if any."""
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if not contours:
+        return "quad", None
+    c = max(contours, key=cv2.contourArea)
+    if len(c) < 6:
+        return "quad", None
+    hull = cv2.convexHull(c)
+    ellipse = cv2.fitEllipse(c)
+    iou_e = _iou_with_polygon(mask, lambda cv: cv2.ellipse(cv, ellipse, 1, -1))
+    quad = _quad_from_hull(hull)
+    iou_q = 0.0
+    if quad is not None:
+        iou_q = _iou_with_polygon(mask, lambda cv: cv2.fillPoly(cv, [np.round(quad).astype(np.int32)], 1))
+    return ("circle" if iou_e >= iou_q else "quad"), quad
+
+
+def checker_phase_type(gray: np.ndarray, cx: float, cy: float, radius: float, quad_img: np.ndarray | None) -> str:
+    """"square" or "diagonal": compare the checker's boundary directions with the outline's edges.
+
+    The angular profile I(theta) on a ring of 0.3..0.6 radius around the centre has a second harmonic
+    whose phase gives the two boundary lines; for "square" they are parallel to the edges of the
+    outline quadrilateral, for "diagonal" they run to its corners (45 degrees off in the frontal view).
+    """
+    if quad_img is None:
+        return "square"
+    n = 96
+    th = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    rs = radius * np.array([0.3, 0.4, 0.5, 0.6])
+    xs = (cx + np.cos(th)[None] * rs[:, None]).astype(np.float32)
+    ys = (cy + np.sin(th)[None] * rs[:, None]).astype(np.float32)
+    vals = cv2.remap(gray.astype(np.float32), xs, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).mean(0)
+    vals = vals - vals.mean()
+    # I(theta) ~ a cos(2 theta - phi): bright sectors centred at phi / 2 (+ 180); boundaries at phi/2 +- 45
+    z = np.sum(vals * np.exp(-2j * th))
+    boundary = (np.angle(z) / 2.0 + np.pi / 4) % (np.pi / 2)
+    # directions from the centre to the edge midpoints of the outline
+    q = np.asarray(quad_img, float)
+    mids = 0.5 * (q + np.roll(q, -1, axis=0))
+    edge_dirs = np.arctan2(mids[:, 1] - cy, mids[:, 0] - cx) % (np.pi / 2)
+    corner_dirs = np.arctan2(q[:, 1] - cy, q[:, 0] - cx) % (np.pi / 2)
+
+    def dist(a: np.ndarray) -> float:
+        d = np.abs((a - boundary + np.pi / 4) % (np.pi / 2) - np.pi / 4)
+        return float(d.mean())
+
+    # square: boundaries point at the edge midpoints; diagonal: at the corners
+    return "square" if dist(edge_dirs) <= dist(corner_dirs) else "diagonal"
+
+
+class HMADetector:
+    """The learned marker detector (HMA over HRNet-OCR), registered as ``hma``."""
+
+    name = "hma"
+    Settings = HMASettings
+
+    def __init__(self, **settings: Any):
+        self.settings: HMASettings = settings_from_dataclass(HMASettings, settings)
+        s = self.settings
+        model_dir = Path(s.model_dir) if s.model_dir else DEFAULT_MODEL_DIR
+        if s.model_dir is None and not shipped_weights_present():
+            from cpdetect.errors import UsageError
+
+            raise UsageError(f"the shipped hma weights are missing ({DEFAULT_MODEL_DIR}); "
+                             "pass model_dir=... (a folder written by 'cpdetect train')")
+        from .infer import open_backend
+
+        self.model_dir = model_dir
+        self.backend = open_backend(model_dir, s.backend, s.device, s.threads)
+
+    @classmethod
+    def with_backend(cls, backend: Any, **settings: Any) -> "HMADetector":
+        """A detector around an already opened backend (anything with ``name`` and ``trunk(x)``)."""
+        self = cls.__new__(cls)
+        self.settings = settings_from_dataclass(HMASettings, settings)
+        self.model_dir = None
+        self.backend = backend
+        return self
+
+    # ------------------------------------------------------------------
+    def probability(self, gray: np.ndarray):
+        from .infer import probability_map
+
+        s = self.settings
+        return probability_map(gray, self.backend, s.scales, s.max_side, s.tile, s.overlap)
+
+    def detect(self, image: Any) -> DetectionResult:
+        t0 = time.perf_counter()
+        if isinstance(image, (str, os.PathLike)):
+            from cpdetect.imageio import read_image
+
+            image = read_image(image, gray=True)
+        gray = as_gray_uint8(image)
+        if gray.shape[0] < 8 or gray.shape[1] < 8:
+            raise ValueError(f"image too small: {gray.shape}")
+        h, w = gray.shape
+        pm = self.probability(gray)
+        dets = self._instances(gray, pm.prob, pm.factor)
+        dets.sort(key=lambda d: -d.score)
+        return DetectionResult(detections=dets, image_size=(w, h), probability=pm.prob,
+                               seconds=time.perf_counter() - t0,
+                               extras={"backend": self.backend.name, "scales": list(self.settings.scales),
+                                       "probability_factor": pm.factor})
+
+    # ------------------------------------------------------------------
+    def _instances(self, gray: np.ndarray, prob: np.ndarray, f: float) -> list[MarkerDetection]:
+        s = self.settings
+        h, w = gray.shape
+        binary = (prob >= s.threshold).astype(np.uint8)
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
+        out: list[MarkerDetection] = []
+        for k in range(1, n):
+            x0, y0, bw, bh, area = (int(v) for v in stats[k])
+            radius = math.sqrt(area / math.pi) / f  # equal-area radius, image pixels
+            if radius < s.min_radius_px:
+                continue
+            sl = (slice(y0, y0 + bh), slice(x0, x0 + bw))
+            comp = labels[sl] == k
+            p = prob[sl] * comp
+            wsum = float(p.sum())
+            yy, xx = np.mgrid[y0:y0 + bh, x0:x0 + bw]
+            u, v = float((p * xx).sum() / wsum), float((p * yy).sum() / wsum)
+            cx, cy = (u + 0.5) / f - 0.5, (v + 0.5) / f - 0.5
+            score = float(np.clip(wsum / area, 0.0, 1.0))
+            # shape on the component upsampled to >= ~24 px radius, mapped back to image pixels
+            up = max(1.0, 24.0 * f / max(radius * f, 1e-6))
+            pad = 2
+            cm = np.pad(comp.astype(np.uint8), pad)
+            if up > 1.0:
+                pm = np.pad(prob[sl] * comp, pad)
+                pm = cv2.resize(pm, None, fx=up, fy=up, interpolation=cv2.INTER_LINEAR)
+                cm = (pm >= s.threshold).astype(np.uint8)
+            kind, quad = classify_shape(cm)
+            quad_img = None
+            if quad is not None:
+                qp = (quad + 0.5) / up - 0.5 - pad + np.array([x0, y0], np.float32)
+                quad_img = (qp + 0.5) / f - 0.5
+            sigma = max(0.5, 0.25 * radius)
+            if s.refine != "none":
+                from cpdetect.refine import refine_center
+
+                r = refine_center(gray, cx, cy, radius, method=s.refine)
+                if r.ok:
+                    cx, cy, sigma = r.x, r.y, max(float(r.sigma_px), 1e-3)
+            if kind == "circle":
+                mtype = "circle"
+            else:
+                mtype = checker_phase_type(gray, cx, cy, radius, quad_img)
+            cx = float(np.clip(cx, -0.5, w - 0.5))
+            cy = float(np.clip(cy, -0.5, h - 0.5))
+            out.append(MarkerDetection(x=cx, y=cy, score=score, type=mtype, radius_px=float(radius),
+                                       sigma_px=float(sigma)))
+        return out
+
+
+__all__ = ["HMADetector", "HMASettings", "default_model_dir", "shipped_weights_present", "classify_shape",
+           "checker_phase_type"]

@@ -1,0 +1,237 @@
+"""Probability maps from the HMA network with bounded memory: torch or OpenCV-DNN backends, tiling.
+
+Pipeline for one gray uint8 image (H, W):
+
+1. downscale by ``f = min(1, max_side / max(H, W))`` (cv2.INTER_AREA) to the processing size;
+2. cut the processing image into tiles of at most ``tile`` x ``tile`` pixels overlapping by
+   ``overlap`` (one tile when it fits);
+3. per tile and per scale s: resize (bilinear) to s, pad (reflect) to a multiple of 32, run the
+   backend's single-scale trunk -> class logits (K, h, w) and attention (h, w), crop the padding;
+4. fuse the scales recursively exactly as :meth:`learned.hma.HMAModel.nscale_forward` does, in numpy
+   (one implementation for both backends);
+5. P(marker) = softmax(logits)[1], tiles pasted by their central parts.
+
+The result is P(marker) at the processing resolution (float32 (h, w) in [0, 1]) and the factor ``f``
+(processing pixels per image pixel). Pixel centres: processing pixel (u, v) is image point
+((u + 0.5) / f - 0.5, (v + 0.5) / f - 0.5) (cv2.resize convention).
+
+Backends: ``TorchBackend`` (needs torch) and ``OpenCVBackend`` (cv2.dnn on the exported ONNX trunk;
+no torch). ``open_backend(model_dir, "auto")`` picks torch when it is importable, else OpenCV.
+"""
+from __future__ import annotations
+
+import importlib.util
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol, Sequence
+
+import cv2
+import numpy as np
+
+SIZE_MULTIPLE = 32
+ONNX_FILE = "model.onnx"
+
+
+class TrunkBackend(Protocol):
+    """Runs the network at one scale: x (h, w) float32 in [0, 1] -> (logits (K, h, w), attention (h, w))."""
+
+    name: str
+
+    def trunk(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+def _pad_to_multiple(x: np.ndarray, m: int = SIZE_MULTIPLE) -> np.ndarray:
+    h, w = x.shape
+    ph, pw = (-h) % m, (-w) % m
+    if ph == 0 and pw == 0:
+        return x
+    mode = cv2.BORDER_REFLECT_101 if min(h, w) > 1 else cv2.BORDER_REPLICATE
+    return cv2.copyMakeBorder(x, 0, ph, 0, pw, mode)
+
+
+class TorchBackend:
+    """The PyTorch model (``learned.hma``) on CPU or CUDA."""
+
+    name = "torch"
+
+    def __init__(self, model, device: str = "cpu", threads: int | None = None):
+        import torch
+
+        if threads:
+            torch.set_num_threads(int(threads))
+        self.torch = torch
+        self.device = torch.device(device)
+        self.model = model.eval().to(self.device)
+
+    @classmethod
+    def from_dir(cls, model_dir: str | os.PathLike, device: str = "cpu", threads: int | None = None) -> "TorchBackend":
+        from .hma import load_model
+
+        return cls(load_model(model_dir), device, threads)
+
+    def trunk(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        torch = self.torch
+        h, w = x.shape
+        xp = _pad_to_multiple(np.ascontiguousarray(x, np.float32))
+        with torch.inference_mode():
+            t = torch.from_numpy(xp)[None, None].to(self.device)
+            cls, _aux, attn = self.model._fwd(t)
+            cls = cls[0, :, :h, :w].float().cpu().numpy()
+            attn = attn[0, 0, :h, :w].float().cpu().numpy()
+        return cls, attn
+
+
+class OpenCVBackend:
+    """The exported ONNX trunk (``export.export_trunk_onnx``) through cv2.dnn; needs no torch."""
+
+    name = "opencv"
+
+    def __init__(self, onnx_path: str | os.PathLike):
+        from cpdetect.errors import InputError
+
+        p = Path(onnx_path)
+        if not p.is_file():
+            raise InputError("ONNX model not found", p)
+        try:
+            self.net = cv2.dnn.readNetFromONNX(str(p))
+        except cv2.error as exc:
+            raise InputError(f"OpenCV cannot load the ONNX model: {str(exc).strip().splitlines()[-1]}", p) from None
+        self.path = p
+
+    def trunk(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        h, w = x.shape
+        xp = _pad_to_multiple(np.ascontiguousarray(x, np.float32))
+        self.net.setInput(xp[None, None])
+        out = self.net.forward()  # (1, K + 1, H, W): K logits then the attention
+        out = np.asarray(out)[0, :, :h, :w]
+        return np.ascontiguousarray(out[:-1]), np.ascontiguousarray(out[-1])
+
+
+def torch_available() -> bool:
+    return importlib.util.find_spec("torch") is not None
+
+
+def open_backend(model_dir: str | os.PathLike, backend: str = "auto", device: str = "cpu",
+                 threads: int | None = None) -> TrunkBackend:
+    """A backend for the model folder: "torch", "opencv" or "auto" (torch when installed and
+    ``model.pt`` is present, else OpenCV on ``model.onnx``)."""
+    from cpdetect.errors import InputError, UsageError
+
+    d = Path(model_dir)
+    if backend not in ("auto", "torch", "opencv"):
+        raise UsageError(f"unknown backend {backend!r}; valid: auto, torch, opencv")
+    if backend == "auto":
+        backend = "torch" if (torch_available() and (d / "model.pt").exists()) else "opencv"
+    if backend == "torch":
+        if not torch_available():
+            raise UsageError("backend 'torch' needs PyTorch (pip install 'cpdetect[learned]'); "
+                             "use backend='opencv' with an exported model.onnx")
+        return TorchBackend.from_dir(d, device, threads)
+    onnx = d / ONNX_FILE
+    if not onnx.exists():
+        raise InputError("no model.onnx in the model folder (run 'cpdetect export-onnx')", d)
+    return OpenCVBackend(onnx)
+
+
+def resize_scale_np(x: np.ndarray, s: float) -> np.ndarray:
+    """Bilinear rescale by ``s`` to floor(size * s), like torch interpolate(scale_factor=s,
+    recompute_scale_factor=True, align_corners=False) without antialiasing."""
+    if s == 1.0:
+        return x
+    h, w = x.shape[-2:]
+    return resize_to_np(x, (int(np.floor(h * s)), int(np.floor(w * s))))
+
+
+def resize_to_np(x: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+    """Bilinear (align_corners=False) resize of (h, w) or (C, h, w) float32 to ``hw``."""
+    h, w = hw
+    if x.shape[-2:] == (h, w):
+        return x
+    if x.ndim == 2:
+        return cv2.resize(x, (w, h), interpolation=cv2.INTER_LINEAR)
+    return np.stack([cv2.resize(c, (w, h), interpolation=cv2.INTER_LINEAR) for c in x])
+
+
+def fuse_scales(backend: TrunkBackend, x: np.ndarray, scales: Sequence[float]) -> np.ndarray:
+    """Hierarchical multi-scale fusion of class logits over ``scales`` (must contain 1.0), at x's size.
+
+    Identical recursion to :meth:`learned.hma.HMAModel.nscale_forward` (hma.md section 1.5).
+    """
+    ss = sorted({float(s) for s in scales}, reverse=True)
+    if 1.0 not in ss:
+        raise ValueError(f"scales {ss} must include 1.0")
+    pred = None
+    for s in ss:
+        p, a = backend.trunk(resize_scale_np(x, s))
+        if pred is None:
+            pred = p
+        elif s >= 1.0:
+            pred = resize_to_np(pred, p.shape[-2:])
+            pred = a[None] * p + (1.0 - a[None]) * pred
+        else:
+            hw = pred.shape[-2:]
+            pred = resize_to_np(a[None] * p, hw) + (1.0 - resize_to_np(a, hw)[None]) * pred
+    return pred
+
+
+def marker_probability_np(logits: np.ndarray) -> np.ndarray:
+    """P(marker) (h, w) from (K, h, w) logits: softmax channel 1, or sigmoid when K == 1."""
+    if logits.shape[0] == 1:
+        return 1.0 / (1.0 + np.exp(-logits[0]))
+    m = logits.max(axis=0, keepdims=True)
+    e = np.exp(logits - m)
+    return (e[1] / e.sum(axis=0)).astype(np.float32)
+
+
+def tiles(length: int, tile: int, overlap: int) -> list[tuple[int, int, int, int]]:
+    """1-D tiling: (start, stop, keep_start, keep_stop) covering [0, length); kept parts partition it."""
+    if length <= tile:
+        return [(0, length, 0, length)]
+    step = tile - 2 * overlap
+    if step <= 0:
+        raise ValueError("tile must exceed 2 * overlap")
+    out = []
+    keep0 = 0
+    while keep0 < length:
+        keep1 = min(keep0 + step, length)
+        start = max(0, min(keep0 - overlap, length - tile))
+        stop = min(length, start + tile)
+        out.append((start, stop, keep0, keep1))
+        keep0 = keep1
+    return out
+
+
+@dataclass(frozen=True)
+class ProbabilityMap:
+    """P(marker) at the processing resolution and the factor f (processing px per image px)."""
+
+    prob: np.ndarray
+    factor: float
+
+
+def probability_map(gray: np.ndarray, backend: TrunkBackend, scales: Sequence[float] = (1.0,),
+                    max_side: int | None = 2048, tile: int = 1024, overlap: int = 64) -> ProbabilityMap:
+    """P(marker) for a gray uint8 (or float [0, 1]) image, downscaled to ``max_side`` and tiled."""
+    if gray.ndim != 2:
+        raise ValueError(f"expected a gray (H, W) image, got shape {gray.shape}")
+    h, w = gray.shape
+    f = 1.0
+    if max_side and max(h, w) > max_side:
+        f = max_side / float(max(h, w))
+        img = cv2.resize(gray, (max(1, int(round(w * f))), max(1, int(round(h * f)))), interpolation=cv2.INTER_AREA)
+    else:
+        img = gray
+    x = img.astype(np.float32) / 255.0 if img.dtype == np.uint8 else img.astype(np.float32)
+    ph, pw = x.shape
+    prob = np.empty((ph, pw), np.float32)
+    for y0, y1, ky0, ky1 in tiles(ph, tile, overlap):
+        for x0, x1, kx0, kx1 in tiles(pw, tile, overlap):
+            logits = fuse_scales(backend, x[y0:y1, x0:x1], scales)
+            p = marker_probability_np(logits)
+            prob[ky0:ky1, kx0:kx1] = p[ky0 - y0:ky1 - y0, kx0 - x0:kx1 - x0]
+    return ProbabilityMap(np.clip(prob, 0.0, 1.0), pw / float(w))
+
+
+__all__ = ["TorchBackend", "OpenCVBackend", "open_backend", "fuse_scales", "probability_map", "ProbabilityMap",
+           "marker_probability_np", "tiles", "resize_scale_np", "resize_to_np", "torch_available"]

@@ -1,0 +1,321 @@
+"""Training loop for the HMA marker segmenter: two-scale training, RMI loss, SGD with poly decay.
+
+Output folder layout (``out``)::
+
+    config.json, model.pt   the best model so far (by validation IoU; the latest when there is no
+                            validation), loadable with :func:`learned.hma.load_model`
+    checkpoint.pt           the latest training state (model, optimiser, iteration, RNG, best) for resume
+    train_log.jsonl         one JSON line per logged interval and per validation
+    train_args.json         the arguments of the run
+
+Randomness: crops are drawn from generator seeds (seed, epoch, index) and torch is seeded from
+``seed``, so two runs with the same arguments (and thread count) give the same weights. ``resume``
+continues from ``checkpoint.pt`` at the saved iteration.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from .data import AugmentConfig, CropDataset, Sample, samples_from_dataset, split_samples
+from .hma import HMAModel, build_model, load_matching, marker_probability, preset, read_config, save_model
+from .rmi import HMALossWeights, RMIStats, hma_loss
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT = "checkpoint.pt"
+LOG_FILE = "train_log.jsonl"
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Arguments of a training run (all saved to ``train_args.json``).
+
+    epochs x iters_per_epoch iterations of ``batch`` crops of ``crop`` pixels. lr: SGD base rate,
+    decayed per iteration as (1 - it / total) ** poly. val_frac: fraction of the images held out
+    (ignored when ``val_data`` is given); val_crops: fixed validation crops. checkpoint_minutes: time
+    between checkpoints inside an epoch.
+    """
+
+    data: str
+    out: str
+    val_data: str | None = None
+    model: str = "w16_tiny"
+    init: str | None = None
+    freeze_backbone: bool = False
+    epochs: int = 30
+    iters_per_epoch: int = 200
+    batch: int = 8
+    crop: int = 256
+    lr: float = 0.01
+    momentum: float = 0.9
+    weight_decay: float = 1e-4
+    poly: float = 1.0
+    val_frac: float = 0.05
+    val_crops: int = 64
+    val_scales: tuple[float, ...] = (0.5, 1.0)
+    seed: int = 0
+    device: str = "auto"
+    threads: int = 2
+    checkpoint_minutes: float = 5.0
+    log_every: int = 20
+    channels_last: bool = True
+    augment: AugmentConfig = field(default_factory=AugmentConfig)
+
+
+@dataclass
+class TrainResult:
+    out: Path
+    iterations: int
+    best_iou: float | None
+    last_val: dict | None
+    seconds: float
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def read_state(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor], dict | None]:
+    """State dict (and config dict when known) from a model folder, a checkpoint.pt or a bare state dict."""
+    from cpdetect.errors import InputError
+
+    p = Path(path)
+    if p.is_dir():
+        cfg = read_config(p).to_dict()
+        p = p / "model.pt"
+    else:
+        cfg = None
+    if not p.exists():
+        raise InputError("checkpoint not found", p)
+    try:
+        obj = torch.load(p, map_location="cpu", weights_only=False)
+    except Exception as exc:
+        raise InputError(f"cannot read checkpoint: {exc}", p) from None
+    if isinstance(obj, dict) and "model" in obj and isinstance(obj["model"], dict):
+        cfg = obj.get("config", cfg)
+        obj = obj["model"]
+    if not isinstance(obj, dict) or not all(isinstance(v, torch.Tensor) for v in obj.values()):
+        raise InputError("not a state dict or cpdetect checkpoint", p)
+    return obj, cfg
+
+
+def init_from(model: HMAModel, path: str | os.PathLike) -> tuple[list[str], list[str]]:
+    """Transfer learning: load every layer of ``path`` whose name and shape match; log the rest."""
+    state, _ = read_state(path)
+    loaded, skipped = load_matching(model, state)
+    log.info("init from %s: %d tensors loaded, %d re-initialised", path, len(loaded), len(skipped))
+    if skipped:
+        log.info("re-initialised (absent or other shape): %s", ", ".join(skipped))
+    unused = sorted(set(state) - set(loaded))
+    if unused:
+        log.info("checkpoint tensors not used: %s", ", ".join(unused))
+    return loaded, skipped
+
+
+def set_bn_eval(module: torch.nn.Module) -> None:
+    for m in module.modules():
+        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+            m.eval()
+
+
+@torch.no_grad()
+def evaluate(model: HMAModel, batches: Sequence[tuple[torch.Tensor, torch.Tensor]], scales: Sequence[float],
+             device: torch.device, threshold: float = 0.5) -> dict:
+    """Pixel IoU / precision / recall / F1 of the marker class accumulated over all batches."""
+    was_training = model.training
+    model.eval()
+    tp = fp = fn = 0
+    for x, y in batches:
+        logits = model.nscale_forward(x.to(device), scales)
+        p = marker_probability(logits)[:, 0].cpu()
+        valid = y != 255
+        pred = (p >= threshold) & valid
+        gt = (y == 1) & valid
+        tp += int((pred & gt).sum())
+        fp += int((pred & ~gt).sum())
+        fn += int((~pred & gt).sum())
+    model.train(was_training)
+    iou = tp / max(tp + fp + fn, 1)
+    prec = tp / max(tp + fp, 1)
+    rec = tp / max(tp + fn, 1)
+    f1 = 2 * tp / max(2 * tp + fp + fn, 1)
+    return {"iou": iou, "precision": prec, "recall": rec, "f1": f1, "tp": tp, "fp": fp, "fn": fn}
+
+
+def _collate(items: list[tuple[torch.Tensor, torch.Tensor]]) -> tuple[torch.Tensor, torch.Tensor]:
+    return torch.stack([a for a, _ in items]), torch.stack([b for _, b in items])
+
+
+def _append_log(path: Path, record: dict) -> None:
+    with open(path, "a", encoding="utf-8") as fh:
+        fh.write(json.dumps(record) + "\n")
+
+
+def _save_checkpoint(path: Path, model: HMAModel, opt: torch.optim.Optimizer, it: int, best: float | None,
+                     cfg: TrainConfig) -> None:
+    from cpdetect.fileio import atomic_path
+
+    state = {"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it, "best_iou": best,
+             "config": model.config.to_dict(), "torch_rng": torch.get_rng_state(),
+             "train_config": _jsonable(cfg)}
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+
+
+def _jsonable(cfg: TrainConfig) -> dict:
+    d = asdict(cfg)
+    d["augment"] = asdict(cfg.augment)
+    return json.loads(json.dumps(d, default=list))
+
+
+def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None = None,
+          val_samples: list[Sample] | None = None, progress: bool = True,
+          on_iteration: Callable[[int, dict], None] | None = None) -> TrainResult:
+    """Train (or resume) a model into ``cfg.out``; ``samples`` overrides reading ``cfg.data``."""
+    from cpdetect.errors import UsageError
+    from cpdetect.fileio import write_json_atomic
+
+    t_start = time.time()
+    torch.set_num_threads(max(1, int(cfg.threads)))
+    device = pick_device(cfg.device)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt_path = out / CHECKPOINT
+
+    if samples is None:
+        samples = samples_from_dataset(cfg.data)
+        if not samples:
+            raise UsageError(f"dataset {cfg.data} has no images with masks")
+        if cfg.val_data:
+            val_samples = samples_from_dataset(cfg.val_data)
+        else:
+            samples, val_samples = split_samples(samples, cfg.val_frac, cfg.seed)
+    aug = cfg.augment if cfg.augment.crop == cfg.crop else AugmentConfig(**{**asdict(cfg.augment), "crop": cfg.crop})
+    train_ds = CropDataset(samples, aug, cfg.iters_per_epoch * cfg.batch, cfg.seed)
+    val_batches: list[tuple[torch.Tensor, torch.Tensor]] = []
+    if val_samples:
+        vds = CropDataset(val_samples, AugmentConfig(**{**asdict(aug), "blur_prob": 0.5}), cfg.val_crops,
+                          cfg.seed + 7919)
+        items = [vds[i] for i in range(len(vds))]
+        val_batches = [_collate(items[i:i + cfg.batch]) for i in range(0, len(items), cfg.batch)]
+
+    # model
+    torch.manual_seed(cfg.seed)
+    checkpoint = None
+    if resume:
+        if not ckpt_path.exists():
+            raise UsageError(f"--resume: no {CHECKPOINT} in {out}")
+        checkpoint = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        model = build_model(checkpoint["config"])
+    elif cfg.init and cfg.model == "from-init":
+        _, init_cfg = read_state(cfg.init)
+        if init_cfg is None:
+            raise UsageError("--model from-init needs a model folder or checkpoint that carries its config")
+        model = build_model({**init_cfg, "num_classes": 2})
+    else:
+        model = build_model(preset(cfg.model, num_classes=2))
+    if cfg.init and not resume:
+        init_from(model, cfg.init)
+    model.to(device)
+    if cfg.channels_last:
+        model = model.to(memory_format=torch.channels_last)
+    if cfg.freeze_backbone:
+        for p in model.backbone.parameters():
+            p.requires_grad_(False)
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = torch.optim.SGD(params, lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
+    it, best = 0, None
+    if checkpoint is not None:
+        model.load_state_dict(checkpoint["model"])
+        opt.load_state_dict(checkpoint["optimizer"])
+        it = int(checkpoint["iteration"])
+        best = checkpoint.get("best_iou")
+        torch.set_rng_state(checkpoint["torch_rng"])
+        log.info("resumed from %s at iteration %d (best IoU %s)", ckpt_path, it, best)
+    write_json_atomic(out / "train_args.json", _jsonable(cfg))
+
+    total = cfg.epochs * cfg.iters_per_epoch
+    weights = HMALossWeights()
+    stats = RMIStats()
+    log_path = out / LOG_FILE
+    last_ckpt = time.time()
+    last_val = None
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, initial=it, desc="train", unit="it", file=sys.stderr,
+                   mininterval=1.0 if sys.stderr.isatty() else 30.0, dynamic_ncols=True)
+    model.train()
+    if cfg.freeze_backbone:
+        set_bn_eval(model.backbone)
+    run_loss: list[float] = []
+    t_iter = time.time()
+    while it < total:
+        epoch, b = divmod(it, cfg.iters_per_epoch)
+        train_ds.set_epoch(epoch)
+        x, y = _collate([train_ds[b * cfg.batch + j] for j in range(cfg.batch)])
+        x, y = x.to(device), y.to(device)
+        if cfg.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
+        lr = cfg.lr * (1.0 - it / total) ** cfg.poly
+        for g in opt.param_groups:
+            g["lr"] = lr
+        outd = model(x)
+        loss, parts = hma_loss(outd, y, weights, stats)
+        if not math.isfinite(parts["total"]):
+            raise RuntimeError(f"loss is not finite at iteration {it}: {parts}")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        it += 1
+        run_loss.append(parts["total"])
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(loss=f"{parts['total']:.3f}", lr=f"{lr:.4g}", refresh=False)
+        if on_iteration is not None:
+            on_iteration(it, parts)
+        if it % cfg.log_every == 0 or it == total:
+            now = time.time()
+            _append_log(log_path, {"iteration": it, "epoch": epoch, "lr": lr, "loss": float(np.mean(run_loss)),
+                                   **{f"last_{k}": v for k, v in parts.items()},
+                                   "cholesky_failures": stats.cholesky_failures,
+                                   "s_per_it": (now - t_iter) / max(len(run_loss), 1), "time": now})
+            run_loss, t_iter = [], now
+        end_of_epoch = it % cfg.iters_per_epoch == 0 or it == total
+        if end_of_epoch:
+            if val_batches:
+                last_val = evaluate(model, val_batches, cfg.val_scales, device)
+                if cfg.freeze_backbone:
+                    set_bn_eval(model.backbone)
+                _append_log(log_path, {"iteration": it, "epoch": epoch, "val": last_val, "time": time.time()})
+                log.info("iteration %d: validation IoU %.4f F1 %.4f", it, last_val["iou"], last_val["f1"])
+                if best is None or last_val["iou"] > best:
+                    best = last_val["iou"]
+                    save_model(model, out, extra={"iteration": it, "val": last_val})
+            else:
+                save_model(model, out, extra={"iteration": it})
+        if end_of_epoch or time.time() - last_ckpt > 60.0 * cfg.checkpoint_minutes:
+            _save_checkpoint(ckpt_path, model, opt, it, best, cfg)
+            last_ckpt = time.time()
+    if bar is not None:
+        bar.close()
+    if not (out / "model.pt").exists():
+        save_model(model, out, extra={"iteration": it})
+    return TrainResult(out, it, best, last_val, time.time() - t_start)
+
+
+__all__ = ["TrainConfig", "TrainResult", "train", "evaluate", "init_from", "read_state", "pick_device"]

@@ -1,0 +1,377 @@
+"""Contract tests of the HMA network with a tiny random model (no trained weights needed)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+cv2 = pytest.importorskip("cv2")
+
+from cpdetect.errors import InputError  # noqa: E402
+torch.set_num_threads(1)  # the shared CI machine: one thread is faster than two oversubscribed
+
+from learned.hma import (HMAConfig, build_model, count_parameters, load_matching, load_model,  # noqa: E402
+                         marker_probability, preset, save_model)
+
+
+_CALIBRATED: dict = {}
+
+
+def calibrated(name: str = "test_micro", seed: int = 0, **changes):
+    """A fresh copy of :func:`_calibrated` (cached)."""
+    import copy
+
+    key = (name, seed, tuple(sorted(changes.items())))
+    if key not in _CALIBRATED:
+        _CALIBRATED[key] = _calibrated(name, seed, **changes)
+    return copy.deepcopy(_CALIBRATED[key])
+
+
+def _calibrated(name: str = "test_micro", seed: int = 0, **changes):
+    """A random model whose BatchNorm statistics are measured on smooth random images, so that its
+    activations have realistic magnitudes in eval mode (raw Kaiming init + unit BN stats explode)."""
+    torch.manual_seed(seed)
+    m = build_model(preset(name, **changes))
+    for mod in m.modules():
+        if isinstance(mod, torch.nn.modules.batchnorm._BatchNorm):
+            mod.momentum = None  # cumulative average
+    m.train()
+    with torch.no_grad():
+        for _ in range(3):
+            m(smooth_images(4, 128, 160, seed=seed + _))
+    for mod in m.modules():
+        if isinstance(mod, torch.nn.modules.batchnorm._BatchNorm):
+            mod.momentum = 0.1
+    return m.eval()
+
+
+def smooth_images(n: int, h: int, w: int, seed: int = 0) -> torch.Tensor:
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        small = rng.random((h // 8 + 2, w // 8 + 2)).astype(np.float32)
+        out.append(np.clip(cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC), 0, 1))
+    return torch.from_numpy(np.stack(out)[:, None])
+
+
+def test_presets_have_the_documented_sizes():
+    # hma.md 4.1: w18s1_lite ~2.0 M parameters, w16_tiny ~1.1 M (our semantic head is the paper's 3x3-3x3-1x1)
+    lite = count_parameters(build_model("w18s1_lite"))
+    tiny = count_parameters(build_model("w16_tiny"))
+    assert 1.8e6 < lite < 2.4e6
+    assert 1.0e6 < tiny < 1.3e6
+    assert count_parameters(build_model("test_micro")) < 30_000
+
+
+def test_forward_backward_two_scale_training():
+    torch.manual_seed(0)
+    m = build_model("test_micro").train()
+    x = smooth_images(2, 64, 96)
+    out = m(x)
+    assert set(out) == {"pred", "aux", "pred_lo", "pred_hi", "attn"}
+    for k in ("pred", "aux", "pred_lo", "pred_hi"):
+        assert out[k].shape == (2, 2, 64, 96)
+    assert out["attn"].shape == (2, 1, 32, 48)
+    a = out["attn"].detach()
+    assert 0.0 < float(a.min()) and float(a.max()) < 1.0
+    from learned.rmi import hma_loss
+
+    labels = torch.zeros(2, 64, 96, dtype=torch.int64)
+    labels[:, 20:40, 30:60] = 1
+    loss, _ = hma_loss(out, labels)
+    loss.backward()
+    no_grad = [n for n, p in m.named_parameters() if p.grad is None or not torch.isfinite(p.grad).all()]
+    assert no_grad == []
+    # every head takes part: attention, semantic, aux and the backbone stem get non-zero gradients
+    for name in ("attn_head.0.weight", "cls_head.6.weight", "ocr.aux_head.3.weight", "backbone.stem.0.weight"):
+        assert float(dict(m.named_parameters())[name].grad.abs().sum()) > 0
+
+
+@pytest.mark.parametrize("hw", [(37, 53), (64, 64), (96, 130)])
+def test_arbitrary_input_size_in_eval(hw):
+    m = calibrated()
+    x = smooth_images(1, *hw)
+    with torch.no_grad():
+        for scales in ((1.0,), (0.5, 1.0), (0.5, 1.0, 2.0)):
+            y = m(x, scales=scales)
+            assert y.shape == (1, 2) + hw
+            assert bool(torch.isfinite(y).all())
+
+
+def test_nscale_at_half_and_one_equals_two_scale_forward():
+    m = calibrated()
+    x = smooth_images(2, 96, 128, seed=3)
+    with torch.no_grad():
+        two = m.two_scale_forward(x)
+        n = m.nscale_forward(x, (1.0, 0.5))
+        n_aux = m.nscale_forward(x, (0.5, 1.0), with_aux=True)[1]
+    assert float((two["pred"] - n).abs().max()) < 1e-5
+    assert float((two["aux"] - n_aux).abs().max()) < 1e-5
+    # the fusion is not trivial: it differs from the 1.0 scale alone
+    assert float((n - two["pred_hi"]).abs().max()) > 1e-3
+
+
+def test_nscale_requires_the_unit_scale():
+    m = calibrated()
+    with pytest.raises(ValueError):
+        m.nscale_forward(smooth_images(1, 32, 32), (0.5, 2.0))
+
+
+def test_three_scale_fusion_follows_the_recursion():
+    m = calibrated()
+    x = smooth_images(1, 64, 96, seed=4)
+    from learned.hma import resize_scale
+    from learned.hrnet import resize_to
+
+    with torch.no_grad():
+        got = m.nscale_forward(x, (0.5, 1.0, 2.0))
+        p2, _, _ = m._fwd(resize_scale(x, 2.0))
+        p1, _, a1 = m._fwd(x)
+        p05, _, a05 = m._fwd(resize_scale(x, 0.5))
+        mid = a1 * p1 + (1 - a1) * resize_to(p2, p1)
+        want = resize_to(a05 * p05, p1) + (1 - resize_to(a05, p1)) * mid
+    assert float((got - want).abs().max()) < 1e-5
+
+
+def test_save_load_round_trip(tmp_path):
+    m = calibrated()
+    d = save_model(m, tmp_path / "model")
+    cfg = json.loads((d / "config.json").read_text())
+    assert cfg["format"] == "cpdetect-hma" and cfg["num_classes"] == 2 and cfg["name"] == "test_micro"
+    m2 = load_model(d)
+    assert m2.config == m.config
+    x = smooth_images(1, 64, 80, seed=5)
+    with torch.no_grad():
+        assert torch.equal(m(x), m2(x))
+
+
+def test_load_errors_name_the_file(tmp_path):
+    with pytest.raises(InputError, match="not found"):
+        load_model(tmp_path / "nothing")
+    d = save_model(calibrated(), tmp_path / "m")
+    (d / "model.pt").write_bytes(b"garbage")
+    with pytest.raises(InputError, match="model.pt"):
+        load_model(d)
+    other = save_model(build_model(preset("test_micro", num_classes=3)), tmp_path / "k3")
+    (other / "config.json").write_text((d / "config.json").read_text())
+    with pytest.raises(InputError, match="do not match"):
+        load_model(other)
+    (d / "config.json").write_text('{"format": "cpdetect-hma", "version": 1, "bogus": 1}')
+    with pytest.raises(InputError, match="bogus"):
+        load_model(d)
+
+
+def test_config_round_trips_through_dict():
+    c = preset("w18s1_lite")
+    assert HMAConfig.from_dict(json.loads(json.dumps(c.to_dict()))) == c
+    with pytest.raises(ValueError):
+        HMAConfig(seg_head="deeplab")
+
+
+def test_transfer_learning_loads_matching_layers_only():
+    src = calibrated(num_classes=5)
+    dst = build_model("test_micro")
+    before = {k: v.clone() for k, v in dst.state_dict().items()}
+    loaded, skipped = load_matching(dst, src.state_dict())
+    # only the class-count dependent tensors differ: final convs of the semantic and aux heads
+    assert sorted(skipped) == ["cls_head.6.bias", "cls_head.6.weight", "ocr.aux_head.3.bias", "ocr.aux_head.3.weight"]
+    assert len(loaded) == len(before) - 4
+    sd = dst.state_dict()
+    assert torch.equal(sd["backbone.stem.0.weight"], src.state_dict()["backbone.stem.0.weight"])
+    assert torch.equal(sd["cls_head.6.weight"], before["cls_head.6.weight"])
+
+
+def test_marker_probability_is_softmax_channel_one():
+    logits = torch.tensor([[[[0.0]], [[np.log(3.0)]]]], dtype=torch.float32)
+    assert abs(float(marker_probability(logits)) - 0.75) < 1e-6
+
+
+# ---------------------------------------------------------------------------------------- inference
+
+
+def test_numpy_fusion_equals_the_model_fusion():
+    from learned.infer import TorchBackend, fuse_scales, marker_probability_np
+
+    m = calibrated()
+    x = smooth_images(1, 128, 192, seed=6)
+    tb = TorchBackend(m)
+    for scales in ((1.0,), (0.5, 1.0), (0.5, 1.0, 2.0)):
+        got = marker_probability_np(fuse_scales(tb, x[0, 0].numpy(), scales))
+        with torch.no_grad():
+            want = marker_probability(m.nscale_forward(x, scales))[0, 0].numpy()
+        assert np.abs(got - want).max() < 1e-4, scales
+
+
+def test_onnx_through_opencv_matches_torch_at_two_sizes(tmp_path):
+    pytest.importorskip("onnx")
+    from learned.export import export_onnx
+    from learned.infer import OpenCVBackend, TorchBackend, fuse_scales, marker_probability_np
+
+    m = calibrated("test_micro", seed=1)
+    path = export_onnx(m, tmp_path / "m.onnx")
+    tb, ob = TorchBackend(m), OpenCVBackend(path)
+    for hw in ((128, 160), (96, 224)):
+        x = smooth_images(1, *hw, seed=hw[0])[0, 0].numpy()
+        for scales in ((1.0,), (0.5, 1.0)):
+            pt = marker_probability_np(fuse_scales(tb, x, scales))
+            po = marker_probability_np(fuse_scales(ob, x, scales))
+            assert pt.shape == po.shape == hw
+            assert np.abs(pt - po).max() < 1e-3
+            assert pt.std() > 1e-4  # not a constant map
+
+
+def test_tiles_partition_the_axis():
+    from learned.infer import tiles
+
+    for length, tile, overlap in ((100, 200, 10), (1000, 256, 32), (777, 300, 50)):
+        ts = tiles(length, tile, overlap)
+        keep = [(k0, k1) for _, _, k0, k1 in ts]
+        assert keep[0][0] == 0 and keep[-1][1] == length
+        assert all(a[1] == b[0] for a, b in zip(keep, keep[1:]))
+        for s0, s1, k0, k1 in ts:
+            assert 0 <= s0 <= k0 < k1 <= s1 <= length and s1 - s0 <= tile
+            assert (k0 - s0 >= overlap or s0 == 0) and (s1 - k1 >= overlap or s1 == length)
+
+
+class LocalBackend:
+    """A stand-in network whose output at a pixel depends only on a 13x13 neighbourhood."""
+
+    name = "local"
+
+    def __init__(self):
+        self.calls = []
+
+    def trunk(self, x):
+        self.calls.append(x.shape)
+        logit = 8.0 * (cv2.GaussianBlur(x, (13, 13), 2.0, borderType=cv2.BORDER_REFLECT_101) - 0.5)
+        return np.stack([np.zeros_like(logit), logit]), np.full(x.shape, 0.5, np.float32)
+
+
+def test_tiled_probability_map_equals_untiled_for_a_local_network():
+    from learned.infer import probability_map
+
+    g = (smooth_images(1, 300, 500, seed=8)[0, 0].numpy() * 255).astype(np.uint8)
+    be = LocalBackend()
+    whole = probability_map(g, be, (1.0,), max_side=None, tile=2048)
+    assert be.calls == [(300, 500)]
+    be.calls.clear()
+    tiled = probability_map(g, be, (1.0,), max_side=None, tile=160, overlap=32)
+    assert len(be.calls) > 6 and max(max(c) for c in be.calls) <= 160
+    assert whole.prob.shape == tiled.prob.shape == g.shape
+    assert np.abs(whole.prob - tiled.prob).max() < 1e-5
+    small = probability_map(g, be, (1.0,), max_side=250)
+    assert small.prob.shape == (150, 250) and abs(small.factor - 0.5) < 1e-9
+
+
+def test_real_network_tiles_stay_close_to_the_whole_image():
+    from learned.infer import TorchBackend, probability_map
+
+    m = calibrated("test_micro", seed=2)
+    g = (smooth_images(1, 192, 320, seed=8)[0, 0].numpy() * 255).astype(np.uint8)
+    tb = TorchBackend(m)
+    whole = probability_map(g, tb, (1.0,), max_side=None, tile=2048)
+    tiled = probability_map(g, tb, (1.0,), max_side=None, tile=192, overlap=48)
+    # the OCR context is gathered per tile, so a random network differs, but boundedly
+    assert 0.0 < np.abs(whole.prob - tiled.prob).mean() < 0.25
+
+
+# ---------------------------------------------------------------------------------------- training
+
+
+def _tiny_samples(n: int = 3, seed: int = 0):
+    from cpdetect.markers import MarkerSpec, frontal_homography, render_marker
+    from learned.data import Sample
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n):
+        img = (smooth_images(1, 96, 128, seed=seed + i)[0, 0].numpy() * 120 + 60).astype(np.float32)
+        mask = np.zeros(img.shape, np.float32)
+        c = (rng.uniform(30, 98), rng.uniform(30, 66))
+        spec = MarkerSpec("square", 1.0)
+        rm = render_marker(spec, frontal_homography(c, 14.0, rng.uniform(0, 3), spec), img.shape)
+        rm.composite(img, 20.0, 235.0)
+        mask[rm.y0:rm.y0 + rm.dark.shape[0], rm.x0:rm.x0 + rm.dark.shape[1]] += rm.pattern
+        out.append(Sample(None, None, np.array([c]), np.array([14.0]), np.clip(img, 0, 255).astype(np.uint8),
+                          (mask >= 0.5).astype(np.uint8)))
+    return out
+
+
+def _cfg(out, **kw):
+    from learned.data import AugmentConfig
+    from learned.train import TrainConfig
+
+    base = dict(data="", out=str(out), model="test_micro", epochs=2, iters_per_epoch=2, batch=2, crop=64,
+                val_crops=4, checkpoint_minutes=0.0, augment=AugmentConfig(crop=64), channels_last=False, threads=1)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def _weights(d):
+    return torch.load(d / "checkpoint.pt", weights_only=False)["model"]
+
+
+def test_training_is_deterministic_and_resume_continues_exactly(tmp_path):
+    from learned.train import train
+
+    s = _tiny_samples()
+    r1 = train(_cfg(tmp_path / "a"), samples=s[:2], val_samples=s[2:], progress=False)
+    r2 = train(_cfg(tmp_path / "b"), samples=s[:2], val_samples=s[2:], progress=False)
+    assert r1.iterations == r2.iterations == 4
+    w1, w2 = _weights(tmp_path / "a"), _weights(tmp_path / "b")
+    assert all(torch.equal(w1[k], w2[k]) for k in w1)
+    # an interrupted run (checkpoint every iteration) resumed == the uninterrupted run
+
+    class Stop(Exception):
+        pass
+
+    def stop_at_3(it, parts):
+        if it == 3:
+            raise Stop
+
+    with pytest.raises(Stop):
+        train(_cfg(tmp_path / "c"), samples=s[:2], val_samples=s[2:], progress=False, on_iteration=stop_at_3)
+    assert torch.load(tmp_path / "c" / "checkpoint.pt", weights_only=False)["iteration"] == 2
+    r3 = train(_cfg(tmp_path / "c"), resume=True, samples=s[:2], val_samples=s[2:], progress=False)
+    assert r3.iterations == 4
+    w3 = _weights(tmp_path / "c")
+    assert max(float((w1[k].float() - w3[k].float()).abs().max()) for k in w1) < 1e-6
+    log = [json.loads(line) for line in (tmp_path / "a" / "train_log.jsonl").read_text().splitlines()]
+    assert any("val" in rec for rec in log)
+    assert load_model(tmp_path / "a").config.name == "test_micro"
+
+
+def test_training_from_init_with_other_class_count_and_frozen_backbone(tmp_path):
+    from learned.train import train
+
+    src = save_model(calibrated(num_classes=4), tmp_path / "src")
+    s = _tiny_samples()
+    train(_cfg(tmp_path / "ft", epochs=1, init=str(src), freeze_backbone=True), samples=s[:2],
+          val_samples=s[2:], progress=False)
+    ft = torch.load(tmp_path / "ft" / "checkpoint.pt", weights_only=False)["model"]
+    src_state = torch.load(src / "model.pt", weights_only=True)
+    # frozen backbone: its weights and BN statistics are those of the checkpoint
+    assert torch.equal(ft["backbone.stem.0.weight"], src_state["backbone.stem.0.weight"])
+    assert torch.equal(ft["backbone.stem.1.running_mean"], src_state["backbone.stem.1.running_mean"])
+    # the OCR head trained on, the 2-class semantic head was re-initialised with 2 outputs
+    assert not torch.equal(ft["ocr.conv3x3_ocr.0.weight"], src_state["ocr.conv3x3_ocr.0.weight"])
+    assert ft["cls_head.6.weight"].shape[0] == 2
+
+
+def test_augmented_crops_keep_labels_aligned():
+    from learned.data import AugmentConfig, augment
+
+    s = _tiny_samples(1, seed=3)[0]
+    img, mask = s.load()
+    rng = np.random.default_rng(0)
+    cfg = AugmentConfig(crop=64, blur_prob=0.0, noise_max=0.0, brightness=0.0, contrast=0.0, gamma=0.0)
+    for _ in range(10):
+        x, lab = augment(img, mask, s.centers, cfg, rng)
+        assert x.shape == lab.shape == (64, 64) and x.dtype == np.float32
+        assert set(np.unique(lab)) <= {0, 1, 255}
+        inside = lab == 1
+        if inside.sum() > 50:  # marker pixels are dark or bright, never the mid-grey background
+            v = x[inside]
+            assert np.mean((v < 0.25) | (v > 0.75)) > 0.7
