@@ -208,6 +208,38 @@ def summarize(records: Sequence[dict], pixel: PixelCounts | None = None, detecto
     }
 
 
+def recall_by(records: Sequence[dict], key: str, edges: Sequence[float] | None = None) -> list[dict]:
+    """Marker-level recall grouped by a true marker's field ``key`` (e.g. "type", "radius_px",
+    "tilt_deg", "blur_px", "occluded_frac") or an image field ("category", "background").
+
+    Without ``edges`` groups are the distinct values; with ``edges`` (ascending numbers) groups are the
+    half-open bins [edges[k], edges[k+1]). Returns ``[{"group", "markers", "tp", "recall",
+    "centre_error_px_median"}]``; markers lacking ``key`` are left out.
+    """
+    groups: dict[Any, list] = {}
+    for r in records:
+        for found, items in ((True, r["matches"]), (False, r["missed"])):
+            for m in items:
+                value = m.get(key, r.get(key))
+                if value is None:
+                    continue
+                if edges is not None:
+                    k = int(np.searchsorted(np.asarray(edges, float), float(value), side="right")) - 1
+                    if k < 0 or k >= len(edges) - 1:
+                        continue
+                    value = (float(edges[k]), float(edges[k + 1]))
+                groups.setdefault(value, []).append((found, m.get("distance")))
+    out = []
+    for g in sorted(groups, key=lambda v: (str(type(v)), v)):
+        items = groups[g]
+        tp = sum(1 for f, _ in items if f)
+        d = [x for f, x in items if f]
+        out.append({"group": list(g) if isinstance(g, tuple) else g, "markers": len(items), "tp": tp,
+                    "recall": _ratio(tp, len(items)),
+                    "centre_error_px_median": float(np.median(d)) if d else float("nan")})
+    return out
+
+
 def evaluate(dataset: Dataset, detector: Any, limit: int | None = None,
              progress: Callable[[int, int], None] | None = None) -> dict:
     """Run ``detector`` on every image of ``dataset`` (the first ``limit`` when given) and score it.
@@ -267,5 +299,5 @@ def format_table(metrics: dict) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["Match", "match_detections", "tolerance_px", "PixelCounts", "score_image", "summarize", "evaluate",
-           "format_table", "AP_BINS"]
+__all__ = ["Match", "match_detections", "tolerance_px", "PixelCounts", "score_image", "summarize", "recall_by",
+           "evaluate", "format_table", "AP_BINS"]

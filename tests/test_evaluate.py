@@ -214,3 +214,19 @@ def test_low_resolution_probability_map_is_resampled(dataset):
     px = m["pixel"]
     assert px["images"] == 6
     assert 0.8 < px["iou"] < 0.98 and 0.88 < px["f1"] < 0.99 and 0.95 < px["ap"] < 1.0
+
+
+def test_recall_by_groups_markers(dataset):
+    from cpdetect.evaluate import recall_by
+
+    m = evaluate(dataset, _oracle_factory(dataset)(offset=3.5, with_map=False))
+    by_size = recall_by(m["per_image"], "radius_px", edges=[0, 14, 1e9])
+    assert [g["group"] for g in by_size] == [[0.0, 14.0], [14.0, 1e9]]
+    small, large = by_size
+    assert small["recall"] == 0.0 and large["recall"] == 1.0
+    assert small["markers"] + large["markers"] == dataset.n_markers
+    assert abs(large["centre_error_px_median"] - 3.5) < 1e-9
+    by_type = recall_by(m["per_image"], "type")
+    assert sum(g["markers"] for g in by_type) == dataset.n_markers
+    by_cat = recall_by(m["per_image"], "category")
+    assert sum(g["markers"] for g in by_cat) == dataset.n_markers
