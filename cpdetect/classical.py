@@ -73,8 +73,8 @@ class ClassicalSettings:
             raise ValueError("max_radius_frac must be in (0, 1]")
         if not self.min_contrast > 0:
             raise ValueError("min_contrast must be positive")
-        if not self.search_megapixels > 0.05:
-            raise ValueError("search_megapixels must be > 0.05")
+        if not self.search_megapixels >= 0.01:
+            raise ValueError("search_megapixels must be >= 0.01")
         if self.refine_method not in ("auto", "symmetry", "saddle", "hough"):
             raise ValueError(f"unknown refine_method {self.refine_method!r}")
 

@@ -361,9 +361,16 @@ def refine_hough(gray: np.ndarray, x0: float, y0: float, radius_px: float, windo
     if l2 is None:
         return _fail(x0, y0, "hough", "no second line at 45..135 degrees")
     hole = max(1.5, 0.12 * R)
-    fits = [_refit_line(mag, X, Y, th, rh, 2.0, (x0, y0), hole) for rh, th in (l1, l2)]
-    if any(f is None for f in fits):
-        return _fail(x0, y0, "hough", "line re-fit failed")
+    fits = []
+    for rh, th in (l1, l2):
+        fit = None
+        for _ in range(3):  # re-centre the band on the re-fitted line: the Hough line is coarse
+            fit = _refit_line(mag, X, Y, th, rh, 2.5, (x0, y0), hole)
+            if fit is None:
+                return _fail(x0, y0, "hough", "line re-fit failed")
+            a, b, c = fit[0]
+            th, rh = math.atan2(b, a), -c
+        fits.append(fit)
     p = np.cross(fits[0][0], fits[1][0])
     if abs(p[2]) < 1e-9:
         return _fail(x0, y0, "hough", "parallel lines")

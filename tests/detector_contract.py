@@ -52,8 +52,9 @@ class DetectorContract:
     position_tolerance_px: float = 1.0
 
     @pytest.fixture(scope="class")
-    def detector(self):
-        return get_detector(self.detector_name, **self.settings)
+    @classmethod
+    def detector(cls):
+        return get_detector(cls.detector_name, **cls.settings)
 
     def test_empty_images_give_nothing(self, detector):
         flat = np.full((240, 320, 3), 128, np.uint8)

@@ -1,0 +1,213 @@
+"""The classical detector: contract, marker model (types, size, outline), rejections, paths, CLI."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from cpdetect import get_detector
+from cpdetect.markers import MarkerSpec, plane_homography, projected_center, projected_radius, render_marker
+from cpdetect.types import MARKER_TYPES
+
+from detector_contract import DetectorContract, marker_image, textured_background
+
+
+class TestClassicalContract(DetectorContract):
+    detector_name = "classical"
+
+
+@pytest.fixture(scope="module")
+def det():
+    return get_detector("classical")
+
+
+def tilted_scene(marker_type, center, radius, tilt_deg, tilt_axis, angle, shape=(240, 320), seed=0, noise=2.0,
+                 margin=0.0):
+    spec = MarkerSpec(marker_type, size_m=1.0, margin_m=margin)
+    f = 800.0
+    K = np.array([[f, 0, center[0]], [0, f, center[1]], [0, 0, 1.0]])
+    axis = np.array([np.cos(tilt_axis), np.sin(tilt_axis), 0.0]) * np.radians(tilt_deg)
+    R = cv2.Rodrigues(axis)[0] @ cv2.Rodrigues(np.array([0.0, 0.0, angle]))[0]
+    H = plane_homography(K, R, np.array([0.0, 0.0, f * 0.5 / radius]))
+    img = textured_background(shape, seed)
+    rm = render_marker(spec, H, shape)
+    rm.composite(img, 30.0, 215.0, 235.0)
+    img += np.random.default_rng(seed + 7).normal(0.0, noise, img.shape)
+    mask = np.zeros(shape, np.float32)
+    h, w = rm.dark.shape
+    mask[rm.y0:rm.y0 + h, rm.x0:rm.x0 + w] = rm.pattern
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8), projected_center(H), projected_radius(spec, H), mask
+
+
+@pytest.mark.parametrize("marker_type", MARKER_TYPES)
+@pytest.mark.parametrize("tilt", [0.0, 45.0])
+def test_type_size_and_centre_under_tilt(det, marker_type, tilt):
+    img, c, r, _ = tilted_scene(marker_type, (161.3, 118.6), 30.0, tilt, 0.7, 0.35, seed=2)
+    res = det.detect(img)
+    assert len(res.detections) == 1
+    m = res.detections[0]
+    assert m.type == marker_type
+    assert abs(m.radius_px / r - 1.0) < 0.08
+    err = np.hypot(m.x - c[0], m.y - c[1])
+    assert 0.0 < err < 0.08  # noise of 2 grey levels: not exact, but well sub-pixel
+    assert 0.0 < m.sigma_px < 0.2
+
+
+def test_white_margin_marker_found(det):
+    img, c, r, _ = tilted_scene("square", (150.0, 120.0), 25.0, 20.0, 0.2, 0.5, margin=0.25, seed=4)
+    res = det.detect(img)
+    assert len(res.detections) == 1 and res.detections[0].type == "square"
+
+
+def test_probability_map_covers_the_pattern(det):
+    img, c, r, mask = tilted_scene("circle", (150.0, 120.0), 35.0, 30.0, 1.2, 0.2, seed=5)
+    res = det.detect(img)
+    p = res.probability_at(img.shape[1], img.shape[0]) >= 0.5
+    t = mask >= 0.5
+    iou = (p & t).sum() / (p | t).sum()
+    assert 0.85 < iou <= 1.0
+
+
+def checkerboard(cells=6, cell=28, shape=(240, 320), angle=0.2):
+    img = textured_background(shape, 3)
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    cx, cy = shape[1] / 2, shape[0] / 2
+    u = np.cos(angle) * (xx - cx) + np.sin(angle) * (yy - cy)
+    v = -np.sin(angle) * (xx - cx) + np.cos(angle) * (yy - cy)
+    half = cells * cell / 2
+    inside = (np.abs(u) < half) & (np.abs(v) < half)
+    dark = ((np.floor(u / cell) + np.floor(v / cell)) % 2) == 0
+    img[inside & dark] = 30.0
+    img[inside & ~dark] = 220.0
+    return np.clip(cv2.GaussianBlur(img, (0, 0), 0.7), 0, 255).astype(np.uint8)
+
+
+def test_checkerboard_corners_are_not_markers(det):
+    assert det.detect(checkerboard()).detections == []
+
+
+def test_grout_and_mullion_crosses_are_not_markers(det):
+    img = np.full((240, 320), 170.0, np.float32)
+    for x in range(20, 320, 60):
+        img[:, x:x + 3] = 60.0  # dark grout / mullion lines
+    for y in range(30, 240, 50):
+        img[y:y + 3, :] = 60.0
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    assert det.detect(img.astype(np.uint8)).detections == []
+
+
+def test_text_and_edges_are_not_markers(det):
+    img = np.full((240, 320), 200, np.uint8)
+    cv2.putText(img, "X+ K4 TX", (10, 120), cv2.FONT_HERSHEY_SIMPLEX, 2.0, 20, 6)
+    img[180:, 160:] = 40
+    assert det.detect(img).detections == []
+
+
+def test_path_input_matches_array(det, tmp_path):
+    img = marker_image(center=(140.2, 120.7), radius=26.0, angle=0.5, shape=(240, 300))
+    path = tmp_path / "m.png"
+    cv2.imwrite(str(path), img)
+    a = det.detect(str(path))
+    b = det.detect(img)
+    assert len(a.detections) == len(b.detections) == 1
+    assert abs(a.detections[0].x - b.detections[0].x) < 1e-6
+    assert a.image_size == (300, 240)
+
+
+def test_large_image_is_searched_at_reduced_scale(tmp_path):
+    det = get_detector("classical", search_megapixels=0.02)
+    img = marker_image(center=(250.4, 180.6), radius=40.0, angle=0.3, shape=(400, 560))
+    res = det.detect(img)
+    assert res.extras["search_factor"] == 4
+    assert len(res.detections) == 1
+    m = res.detections[0]
+    # the search is coarse, the refinement on full resolution is not
+    assert np.hypot(m.x - 250.4, m.y - 180.6) < 0.05
+    assert res.probability.shape == (100, 140)
+
+
+def test_unknown_setting_is_refused():
+    from cpdetect.errors import UsageError
+
+    with pytest.raises(UsageError):
+        get_detector("classical", min_radius=3)
+    with pytest.raises(UsageError):
+        get_detector("classical", refine_method="magic")
+
+
+def test_runs_without_torch(tmp_path):
+    code = ("import sys; sys.modules['torch'] = None\n"
+            "import numpy as np\n"
+            "from cpdetect import get_detector\n"
+            "r = get_detector('classical').detect(np.full((64, 64), 100, np.uint8))\n"
+            "assert 'torch' not in sys.modules or sys.modules['torch'] is None\n"
+            "print(len(r.detections))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "0"
+
+
+def _write_images(folder, n=3):
+    folder.mkdir()
+    for i in range(n):
+        img = marker_image(center=(100.0 + 10 * i, 110.0), radius=22.0, angle=0.2 * i, seed=i)
+        cv2.imwrite(str(folder / f"img{i}.jpg"), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
+
+
+def test_detect_cli_output_resume_and_workers(tmp_path):
+    from cpdetect.cli import main
+
+    _write_images(tmp_path / "imgs")
+    out = tmp_path / "det.json"
+    assert main(["-q", "detect", str(tmp_path / "imgs"), "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["format"] == "cpdetect.detections/1" and doc["detector"] == "classical"
+    assert [im["file"] for im in doc["images"]] == ["img0.jpg", "img1.jpg", "img2.jpg"]
+    for i, im in enumerate(doc["images"]):
+        assert (im["width"], im["height"]) == (256, 256)
+        assert len(im["detections"]) == 1
+        d = im["detections"][0]
+        assert set(d) == {"x", "y", "score", "type", "radius_px", "sigma_px"}
+        assert abs(d["x"] - (100.0 + 10 * i)) < 0.2
+    assert not (tmp_path / "det.json.parts").exists()
+    # parallel run gives the same detections
+    out2 = tmp_path / "det2.json"
+    assert main(["-q", "detect", str(tmp_path / "imgs"), "--out", str(out2), "--workers", "2"]) == 0
+    doc2 = json.loads(out2.read_text())
+    strip = lambda d: [{k: v for k, v in im.items() if k != "seconds"} for im in d["images"]]
+    assert strip(doc) == strip(doc2)
+
+
+def test_detect_resumes_from_parts(tmp_path):
+    from cpdetect.batch import collect_jobs, detect_batch, part_name
+
+    _write_images(tmp_path / "imgs", n=2)
+    jobs = collect_jobs([tmp_path / "imgs"])
+    out = tmp_path / "d.json"
+    parts = tmp_path / "d.json.parts"
+    parts.mkdir()
+    fake = {"file": "img0.jpg", "width": 256, "height": 256, "seconds": 0.0, "detections": []}
+    (parts / part_name("img0.jpg")).write_text(json.dumps({"stamp": {"detector": "classical", "settings": {}},
+                                                           "record": fake}))
+    doc = detect_batch(jobs, "classical", {}, out)
+    assert doc["images"][0] == fake  # taken from the part, not recomputed
+    assert len(doc["images"][1]["detections"]) == 1
+    assert not parts.exists()
+
+
+def test_bad_image_stops_or_is_recorded(tmp_path):
+    from cpdetect.cli import main
+
+    _write_images(tmp_path / "imgs", n=1)
+    (tmp_path / "imgs" / "broken.jpg").write_bytes(b"\xff\xd8\xff\xe0garbage")
+    out = tmp_path / "d.json"
+    assert main(["-q", "detect", str(tmp_path / "imgs"), "--out", str(out)]) == 2
+    assert not out.exists()
+    assert main(["-q", "detect", str(tmp_path / "imgs"), "--out", str(out), "--skip-bad"]) == 0
+    doc = json.loads(out.read_text())
+    bad = [im for im in doc["images"] if im["file"] == "broken.jpg"][0]
+    assert "truncated" in bad["error"] or "corrupt" in bad["error"]

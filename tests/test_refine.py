@@ -1,0 +1,138 @@
+"""Centre refinement on analytic images whose true centre is known to ~1e-3 px."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from cpdetect.markers import MarkerSpec, frontal_homography, plane_homography, projected_center, \
+    projected_radius, render_marker
+from cpdetect.refine import METHODS, default_window, refine_center
+
+
+def render(center, radius, angle=0.0, marker_type="square", shape=(160, 160), tilt_deg=0.0, tilt_axis=0.3,
+           noise=0.0, blur=0.0, gradient=(0.0, 0.0), rng=None):
+    """float image, true centre and equal-area radius of one marker (dark 40, bright 210, bg 120)."""
+    spec = MarkerSpec(marker_type, size_m=1.0)
+    if tilt_deg == 0.0:
+        H = frontal_homography(center, radius, angle, spec)
+    else:
+        f = 900.0
+        K = np.array([[f, 0, center[0]], [0, f, center[1]], [0, 0, 1.0]])
+        axis = np.array([np.cos(tilt_axis), np.sin(tilt_axis), 0.0]) * np.radians(tilt_deg)
+        R = cv2.Rodrigues(axis)[0] @ cv2.Rodrigues(np.array([0.0, 0.0, angle]))[0]
+        H = plane_homography(K, R, np.array([0.0, 0.0, f * 0.5 / radius]))
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float32)
+    img = 120.0 + gradient[0] * (xx - center[0]) + gradient[1] * (yy - center[1])
+    render_marker(spec, H, shape).composite(img, 40.0, 210.0)
+    if blur > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur)
+    if noise > 0:
+        img = img + rng.normal(0.0, noise, img.shape)
+    return np.clip(img, 0, 255).astype(np.float32), projected_center(H), projected_radius(spec, H)
+
+
+def test_window_adapts_to_size_and_is_clamped():
+    assert default_window(4.0) == pytest.approx(2.5)
+    assert default_window(20.0) == pytest.approx(10.0)
+    assert default_window(40.0) > default_window(20.0)
+    assert default_window(1000.0) == pytest.approx(40.0)
+
+
+@pytest.mark.parametrize("marker_type", ["square", "circle", "diagonal"])
+def test_exact_centre_without_noise(marker_type):
+    img, c, r = render((80.3, 79.65), 20.0, angle=0.37, marker_type=marker_type)
+    res = refine_center(img, c[0] + 0.8, c[1] - 0.6, r)
+    assert res.ok and res.method == "symmetry"
+    assert np.hypot(res.x - c[0], res.y - c[1]) < 0.01
+    assert 0 < res.sigma_px < 0.05
+
+
+def test_no_half_pixel_bias_over_subpixel_offsets():
+    errs = []
+    for fx in np.linspace(0.0, 1.0, 6, endpoint=False):
+        for fy in (0.0, 0.25, 0.5, 0.75):
+            img, c, r = render((70.0 + fx, 71.0 + fy), 12.0, angle=0.2, shape=(140, 140))
+            res = refine_center(img, round(c[0]), round(c[1]), r)
+            assert res.ok
+            errs.append((res.x - c[0], res.y - c[1]))
+    e = np.array(errs)
+    assert np.abs(e).max() < 0.03
+    assert abs(e[:, 0].mean()) < 0.005 and abs(e[:, 1].mean()) < 0.005
+
+
+def test_noise_bounds_two_sided_and_error_does_not_grow_with_size():
+    rng = np.random.default_rng(3)
+    means = {}
+    for radius in (10.0, 40.0):
+        d, sig = [], []
+        for k in range(12):
+            c0 = (80.0 + rng.uniform(-0.5, 0.5), 80.0 + rng.uniform(-0.5, 0.5))
+            img, c, r = render(c0, radius, angle=rng.uniform(0, np.pi), tilt_deg=35.0,
+                               tilt_axis=rng.uniform(0, np.pi), noise=5.0, blur=0.8, rng=rng)
+            seed = c + rng.uniform(-1.0, 1.0, 2)
+            res = refine_center(img, seed[0], seed[1], r)
+            assert res.ok
+            d.append(np.hypot(res.x - c[0], res.y - c[1]))
+            sig.append(res.sigma_px)
+        d = np.array(d)
+        means[radius] = d.mean()
+        # noise of 5 grey levels must show (> 0.002 px) yet stay well inside the 0.05 px goal
+        assert 0.002 < d.mean() < 0.06
+        # sigma_px is an honest 1-sigma: the RMS error per axis is of the same order
+        ratio = np.sqrt(np.mean(d ** 2) / 2) / np.mean(sig)
+        assert 0.25 < ratio < 3.0
+    assert means[40.0] < means[10.0] + 0.01
+
+
+def test_tilted_60_degrees_with_perspective():
+    img, c, r = render((90.2, 85.7), 30.0, angle=0.5, tilt_deg=60.0, tilt_axis=1.0, shape=(180, 180))
+    res = refine_center(img, c[0] + 1.0, c[1] + 1.0, r)
+    assert res.ok
+    assert np.hypot(res.x - c[0], res.y - c[1]) < 0.02
+
+
+def test_illumination_gradient_is_absorbed():
+    img, c, r = render((80.4, 80.2), 20.0, angle=0.3, gradient=(0.8, -0.5))
+    res = refine_center(img, c[0] - 0.7, c[1] + 0.7, r, method="symmetry")
+    assert res.ok
+    assert np.hypot(res.x - c[0], res.y - c[1]) < 0.03
+
+
+@pytest.mark.parametrize("method,tol", [("saddle", 0.1), ("hough", 0.3), ("symmetry", 0.02), ("auto", 0.02)])
+def test_each_method_on_a_clean_marker(method, tol):
+    img, c, r = render((80.6, 79.3), 30.0, angle=0.4, blur=0.7, shape=(170, 170))
+    res = refine_center(img, c[0] + 0.9, c[1] + 0.5, r, method=method)
+    assert res.ok, res.reason
+    assert res.method == method or method == "auto"
+    assert np.hypot(res.x - c[0], res.y - c[1]) < tol
+
+
+def test_paper_hough_lines_are_near_orthogonal_pair():
+    # a clean axis-aligned marker: the Hough intersection lands on the corner within 0.2 px
+    img, c, r = render((80.0, 80.0), 40.0, angle=0.0, shape=(170, 170), blur=0.6)
+    res = refine_center(img, 81.5, 79.0, r, method="hough")
+    assert res.ok and abs(res.x - c[0]) < 0.2 and abs(res.y - c[1]) < 0.2
+
+
+def test_failures_are_reported_not_raised():
+    flat = np.full((80, 80), 100.0, np.float32)
+    for method in METHODS:
+        res = refine_center(flat, 40.0, 40.0, 15.0, method=method)
+        assert not res.ok and res.reason
+        assert (res.x, res.y) == (40.0, 40.0)
+    edge = np.zeros((80, 80), np.float32)
+    edge[:, 40:] = 200.0
+    assert not refine_center(edge, 40.0, 40.0, 15.0, method="saddle").ok
+
+
+def test_bad_arguments_raise():
+    img = np.zeros((50, 50), np.float32)
+    with pytest.raises(ValueError):
+        refine_center(img, 10, 10, 5.0, method="magic")
+    with pytest.raises(ValueError):
+        refine_center(np.zeros((5, 5, 3)), 2, 2, 5.0)
+    with pytest.raises(ValueError):
+        refine_center(img, np.nan, 2, 5.0)
+    with pytest.raises(ValueError):
+        refine_center(img, 2, 2, 0.0)
