@@ -44,8 +44,15 @@ UNKNOWN = "unknown"
 # a residual RMS is "comparable" to another when within this ratio or this many metres
 RMS_REL_MARGIN = 0.2
 RMS_ABS_MARGIN_M = 0.001
-# one detector is "faster" when its time is below this fraction of the other's
+# one detector is "faster" when its time is below this fraction of the other's and shorter by at least
+# SPEED_ABS_MARGIN_S seconds over the whole run (timings of a few milliseconds are noise)
 SPEED_MARGIN = 0.8
+SPEED_ABS_MARGIN_S = 0.5
+
+
+def faster(seconds: float, other_seconds: float) -> bool:
+    """True when ``seconds`` is clearly less than ``other_seconds`` (see :data:`SPEED_MARGIN`)."""
+    return seconds < SPEED_MARGIN * other_seconds and other_seconds - seconds >= SPEED_ABS_MARGIN_S
 
 Progress = Callable[..., Any]
 
@@ -342,7 +349,8 @@ def recommend_dataset(results: Sequence[DatasetDetectorResult]) -> Recommendatio
                 if err(best) < (1 - RMS_REL_MARGIN) * err(other):
                     part += f"; {best.name} places centres more precisely"
                     decided = True
-                elif spmp(best) < SPEED_MARGIN * spmp(other):
+                elif spmp(best) < SPEED_MARGIN * spmp(other) and faster(best.summary["seconds"] or 0.0,
+                                                                         other.summary["seconds"] or 0.0):
                     part += f"; {best.name} is {spmp(other) / spmp(best):.1f}x faster"
                     decided = True
         lines.append(part)
@@ -634,7 +642,7 @@ def recommend_site(results: Sequence[SiteDetectorResult], n_surveyed: int) -> Re
     """Completeness of the pairings first, then residual RMS, then speed (see the module docstring).
 
     RMS values within 20 % or 1 mm of each other count as equal; a detector is faster when it needs
-    less than 80 % of the other's time. The evidence is insufficient when no detector georeferenced
+    less than 80 % of the other's time and at least half a second less (:func:`faster`). The evidence is insufficient when no detector georeferenced
     the site, when the best pairs fewer than 4 surveyed points (residuals of a 7-parameter fit on 3 points
     say little), when only one detector ran, or when nothing separates the best two.
     """
@@ -691,13 +699,13 @@ def recommend_site(results: Sequence[SiteDetectorResult], n_surveyed: int) -> Re
             if not comparable:
                 part += "; larger residuals"
                 decided = decided or other is ranked[1]
-            elif best.seconds < SPEED_MARGIN * other.seconds:
+            elif faster(best.seconds, other.seconds):
                 part += f"; residuals comparable, {ratio:.1f}x slower"
                 decided = decided or other is ranked[1]
             else:
                 part += "; residuals and speed comparable"
         lines.append(part)
-        if other is ranked[1] and best.seconds < SPEED_MARGIN * other.seconds:
+        if other is ranked[1] and faster(best.seconds, other.seconds):
             lines[0] += f", {ratio:.1f}x faster than {other.name}"
     unpaired_by_all = sorted(set(n for r in results for n in r.report.get("unpaired_surveyed", []))
                              - set(n for r in results for n in r.paired))
@@ -740,4 +748,4 @@ __all__ = ["SIZE_BANDS", "BLUR_BANDS", "BREAKDOWNS", "band_of", "parse_detector_
            "DatasetDetectorResult", "DatasetComparison", "instance_pr", "breakdown", "dataset_agreement",
            "recommend_dataset", "compare_dataset", "SiteInputs", "is_dataset_folder", "find_site",
            "SiteDetectorResult", "SiteComparison", "run_site_detector", "assign_detections", "site_agreement",
-           "recommend_site", "compare_site"]
+           "recommend_site", "compare_site", "faster"]

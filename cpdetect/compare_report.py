@@ -139,11 +139,15 @@ def site_marker_table(cmp: SiteComparison) -> tuple[list[str], list[list[Any]]]:
 
 
 def site_image_table(cmp: SiteComparison) -> tuple[list[str], list[list[Any]]]:
-    header = ["image"] + [f"{r.name} found" for r in cmp.detectors] + [f"{r.name} other" for r in cmp.detectors]
+    header = (["image", "difference"] + [f"{r.name} found" for r in cmp.detectors]
+              + [f"{r.name} other detections" for r in cmp.detectors])
     rows = []
     for im in cmp.images:
         if im["disagree"]:
-            rows.append([im["image"]] + [", ".join(im["found"][r.name]) or "-" for r in cmp.detectors]
+            union = set().union(*(set(v) for v in im["found"].values()))
+            diff = "; ".join(f"{r.name} misses {', '.join(sorted(union - set(im['found'][r.name])))}"
+                             for r in cmp.detectors if union - set(im["found"][r.name]))
+            rows.append([im["image"], diff] + [", ".join(im["found"][r.name]) or "-" for r in cmp.detectors]
                         + [im["other"][r.name] for r in cmp.detectors])
     return header, rows
 
