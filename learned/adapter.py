@@ -138,7 +138,7 @@ def checker_phase_type(gray: np.ndarray, cx: float, cy: float, radius: float, qu
     vals = vals - vals.mean()
     # I(theta) ~ a cos(2 theta - phi): bright sectors centred at phi / 2 (+ 180); boundaries at phi/2 +- 45
     z = np.sum(vals * np.exp(-2j * th))
-    boundary = (np.angle(z) / 2.0 + np.pi / 4) % (np.pi / 2)
+    boundary = (-np.angle(z) / 2.0 + np.pi / 4) % (np.pi / 2)
     # directions from the centre to the edge midpoints of the outline
     q = np.asarray(quad_img, float)
     mids = 0.5 * (q + np.roll(q, -1, axis=0))

@@ -1,0 +1,188 @@
+"""The ``hma`` detector: instance extraction, marker type by shape, settings, the torch-free path,
+and the detector contract with the shipped weights."""
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import cv2
+import numpy as np
+import pytest
+
+from cpdetect import get_detector
+from cpdetect.errors import UsageError
+from cpdetect.markers import MarkerSpec, frontal_homography, render_marker
+from learned.adapter import HMADetector, checker_phase_type, classify_shape, shipped_weights_present
+from detector_contract import DetectorContract, marker_image
+
+
+class OracleBackend:
+    """Stands in for the network: logits +-8 from a known marker mask (at the processing size)."""
+
+    name = "oracle"
+
+    def __init__(self, mask: np.ndarray):
+        self.mask = mask.astype(np.float32)
+
+    def trunk(self, x: np.ndarray):
+        m = cv2.resize(self.mask, (x.shape[1], x.shape[0]), interpolation=cv2.INTER_LINEAR)
+        logit = 16.0 * (m - 0.5)
+        return np.stack([np.zeros_like(logit), logit]), np.full(x.shape, 0.5, np.float32)
+
+
+def rendered(marker_type: str, center=(128.0, 128.0), radius=24.0, angle=0.3, shape=(256, 256)):
+    """(uint8 gray image, pattern mask) of one frontal marker on a mid-grey textured background."""
+    img = cv2.cvtColor(marker_image(center, radius, angle, marker_type, shape, seed=2), cv2.COLOR_BGR2GRAY)
+    spec = MarkerSpec(marker_type, size_m=1.0)
+    H = frontal_homography(center, radius, angle, spec)
+    rm = render_marker(spec, H, shape)
+    mask = np.zeros(shape, np.float32)
+    mask[rm.y0:rm.y0 + rm.dark.shape[0], rm.x0:rm.x0 + rm.dark.shape[1]] = rm.pattern
+    return img, (mask >= 0.5).astype(np.uint8), H
+
+
+def test_shape_of_a_disk_is_a_circle_and_of_a_square_a_quad():
+    disk = np.zeros((80, 80), np.uint8)
+    cv2.circle(disk, (40, 40), 25, 1, -1)
+    assert classify_shape(disk)[0] == "circle"
+    sq = np.zeros((80, 80), np.uint8)
+    pts = cv2.boxPoints(((40.0, 40.0), (40.0, 40.0), 20.0)).astype(np.int32)
+    cv2.fillPoly(sq, [pts], 1)
+    kind, quad = classify_shape(sq)
+    assert kind == "quad" and quad.shape == (4, 2)
+    # the fitted corners are the square's corners within a pixel
+    d = np.min(np.linalg.norm(quad[:, None] - pts[None].astype(np.float32), axis=2), axis=1)
+    assert d.max() < 1.5
+
+
+@pytest.mark.parametrize("marker_type", ["square", "diagonal"])
+@pytest.mark.parametrize("angle", [0.0, 0.3, 1.2])
+def test_checker_phase_separates_square_from_diagonal(marker_type, angle):
+    img, mask, H = rendered(marker_type, angle=angle)
+    kind, quad = classify_shape(mask)
+    assert kind == "quad"
+    assert checker_phase_type(img, 128.0, 128.0, 24.0 * 2 / np.sqrt(np.pi), quad) == marker_type
+
+
+@pytest.mark.parametrize("marker_type", ["square", "circle", "diagonal"])
+def test_instances_from_an_oracle_probability_map(marker_type):
+    center = (121.3, 133.6)
+    img, mask, _ = rendered(marker_type, center=center, radius=26.0, angle=0.5)
+    det = HMADetector.with_backend(OracleBackend(mask))
+    res = det.detect(img)
+    assert len(res.detections) == 1
+    m = res.detections[0]
+    assert m.type == marker_type
+    # refined on the image: far better than the pixel grid, but not exact (noise + rendering)
+    err = float(np.hypot(m.x - center[0], m.y - center[1]))
+    assert err < 0.15
+    # equal-area radius of the pattern mask
+    true_r = np.sqrt(mask.sum() / np.pi)
+    assert abs(m.radius_px - true_r) < 0.03 * true_r + 0.5
+    assert 0.9 < m.score <= 1.0 and 0 < m.sigma_px < 1.0
+    assert res.probability.shape == img.shape and res.probability.dtype == np.float32
+    # without refinement the centre is the probability-weighted centroid: close but coarser
+    raw = HMADetector.with_backend(OracleBackend(mask), refine="none").detect(img).detections[0]
+    assert 0.0 < np.hypot(raw.x - center[0], raw.y - center[1]) < 2.0
+
+
+def test_downscaled_processing_maps_back_to_image_pixels():
+    center = (301.7, 222.2)
+    img, mask, _ = rendered("square", center=center, radius=40.0, angle=0.2, shape=(480, 640))
+    det = HMADetector.with_backend(OracleBackend(mask), max_side=320, refine="none")
+    res = det.detect(img)
+    assert res.probability.shape == (240, 320)
+    assert abs(res.extras["probability_factor"] - 0.5) < 1e-9
+    m = res.detections[0]
+    assert np.hypot(m.x - center[0], m.y - center[1]) < 1.5
+    assert abs(m.radius_px - np.sqrt(mask.sum() / np.pi)) < 2.0
+
+
+def test_small_blobs_and_empty_maps_give_nothing():
+    img = np.full((120, 160), 128, np.uint8)
+    blob = np.zeros(img.shape, np.uint8)
+    blob[50:52, 60:62] = 1  # equal-area radius ~1.1 px < min_radius_px
+    assert HMADetector.with_backend(OracleBackend(blob)).detect(img).detections == []
+    assert HMADetector.with_backend(OracleBackend(blob * 0)).detect(img).detections == []
+
+
+def test_settings_are_checked():
+    with pytest.raises(UsageError, match="bogus"):
+        get_detector("hma", bogus=1)
+    with pytest.raises(UsageError, match="1.0"):
+        get_detector("hma", scales=[0.5, 2.0])
+    with pytest.raises(UsageError, match="backend"):
+        get_detector("hma", backend="tensorflow")
+    with pytest.raises(ValueError):
+        HMADetector.with_backend(OracleBackend(np.zeros((4, 4))), threshold=1.5)
+
+
+def test_rejects_non_images():
+    det = HMADetector.with_backend(OracleBackend(np.zeros((8, 8))))
+    with pytest.raises(ValueError):
+        det.detect(np.zeros((10, 10, 3), np.float64))
+    with pytest.raises(ValueError):
+        det.detect(np.zeros((10, 10, 5), np.uint8))
+
+
+@pytest.fixture(scope="module")
+def micro_model_dir(tmp_path_factory):
+    """A tiny random model folder with config.json, model.pt and model.onnx."""
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    from learned.export import export_onnx
+    from learned.hma import build_model, save_model
+
+    torch.manual_seed(0)
+    m = build_model("test_micro")
+    m.train()
+    with torch.no_grad():  # realistic BN statistics
+        for mod in m.modules():
+            if isinstance(mod, torch.nn.modules.batchnorm._BatchNorm):
+                mod.momentum = None
+        m(torch.rand(4, 1, 96, 128))
+    m.eval()
+    d = save_model(m, tmp_path_factory.mktemp("micro"))
+    export_onnx(m, d / "model.onnx")
+    return d
+
+
+def test_torch_and_opencv_backends_agree_through_the_detector(micro_model_dir):
+    img = marker_image(angle=0.3)
+    a = get_detector("hma", model_dir=str(micro_model_dir), backend="torch", scales=[0.5, 1.0]).detect(img)
+    b = get_detector("hma", model_dir=str(micro_model_dir), backend="opencv", scales=[0.5, 1.0]).detect(img)
+    assert a.extras["backend"] == "torch" and b.extras["backend"] == "opencv"
+    assert np.abs(a.probability - b.probability).max() < 1e-3
+    assert a.probability.std() > 1e-4
+
+
+def test_detector_runs_without_torch(micro_model_dir, tmp_path):
+    only_onnx = tmp_path / "onnx_only"
+    only_onnx.mkdir()
+    for name in ("config.json", "model.onnx"):
+        (only_onnx / name).write_bytes((micro_model_dir / name).read_bytes())
+    code = textwrap.dedent(f"""
+        import sys
+        sys.modules["torch"] = None  # any import of torch now fails
+        import numpy as np
+        from cpdetect import get_detector
+        det = get_detector("hma", model_dir={str(only_onnx)!r})
+        r = det.detect(np.full((96, 128), 128, np.uint8))
+        assert r.extras["backend"] == "opencv", r.extras
+        assert r.probability.shape == (96, 128)
+        try:
+            get_detector("hma", model_dir={str(only_onnx)!r}, backend="torch")
+        except Exception as exc:
+            print("torch backend refused:", type(exc).__name__)
+        print("ok")
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "ok" in out.stdout and "torch backend refused: UsageError" in out.stdout
+
+
+@pytest.mark.skipif(not shipped_weights_present(), reason="the shipped hma weights (learned/weights/default) are absent")
+class TestHMAContract(DetectorContract):
+    detector_name = "hma"
+    settings = {"backend": "opencv"}
