@@ -48,7 +48,7 @@ log = logging.getLogger(__name__)
 
 STAGE_FORMAT = "cpdetect.georef-stage/1"
 # bumped whenever what a stage computes changes, so that stale stage files are recomputed
-ALGORITHM_VERSION = 4
+ALGORITHM_VERSION = 5
 REPORT_FORMAT = "cpdetect.georef-report/1"
 DETECTIONS_FORMAT = "cpdetect.detections/1"
 MODES = ("auto", "cloud", "ray", "triangulate")
@@ -70,6 +70,9 @@ class GeorefSettings:
     sigma_floor_px: smallest pixel sigma used as a weight (refinement sigmas can be optimistic, and
         pose errors of the reconstruction add to them).
     loss / f_scale / outlier_sigma: robust triangulation (see :func:`geometry.triangulate.triangulate`).
+    outlier_radius_fraction: an observation is an outlier only when it is also off by more than this
+        fraction of the marker's apparent radius (tolerates pose errors of the reconstruction: closer
+        than that, the refinement still sat on the marker's own X-corner).
     min_views: markers with fewer inlier views are dropped.
     min_detected_fraction: markers the detector found in fewer of their usable views are dropped.
     adjust: run the pose + marker bundle adjustment after triangulation; pose priors
@@ -92,6 +95,7 @@ class GeorefSettings:
     loss: str = "huber"
     f_scale: float = 2.0
     outlier_sigma: float = 6.0
+    outlier_radius_fraction: float = 0.25
     min_views: int = 3
     min_detected_fraction: float = 0.3
     adjust: bool = False
@@ -131,7 +135,7 @@ _STAGE_FIELDS = {
     "localize": ("mode", "min_score", "cloud_threshold", "prob_max_side", "depth_max_side", "seed"),
     "refine": ("min_score", "depth_max_side", "min_radius_px", "max_obliquity_deg", "refine_method"),
     "triangulate": ("min_score", "depth_max_side", "min_radius_px", "max_obliquity_deg", "refine_method",
-                    "sigma_floor_px", "loss", "f_scale", "outlier_sigma", "min_views", "min_detected_fraction",
+                    "sigma_floor_px", "loss", "f_scale", "outlier_sigma", "outlier_radius_fraction", "min_views", "min_detected_fraction",
                     "adjust", "prior_rot_deg", "prior_pos", "seed"),
     "register": ("registration_noise_m", "seed"),
 }
@@ -693,7 +697,8 @@ def _triangulate_markers(scene, markers, settings, dropped):
                            max(o["sigma_px"], settings.sigma_floor_px), o["image"])
                for o in m["observations"]]
         res = triangulate(obs, loss=settings.loss, f_scale=settings.f_scale,
-                          outlier_sigma=settings.outlier_sigma, rng=np.random.default_rng(settings.seed))
+                          outlier_sigma=settings.outlier_sigma, rng=np.random.default_rng(settings.seed),
+                          outlier_px=[settings.outlier_radius_fraction * o["radius_px"] for o in m["observations"]])
         if not res.ok or res.n_inliers < settings.min_views:
             dropped.append({"candidate": m["candidate"], "reason": res.reason or
                             f"{res.n_inliers} inlier views < {settings.min_views}"})

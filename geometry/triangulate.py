@@ -137,12 +137,14 @@ def _angle_deg(st: _Stack, X: np.ndarray, idx: np.ndarray) -> float:
 
 def triangulate(observations: Sequence[Observation], loss: str = "huber", f_scale: float = 2.0,
                 outlier_sigma: float = 6.0, min_angle_deg: float = 1.0, max_pairs: int = 200,
-                rng: np.random.Generator | None = None) -> TriangulationResult:
+                rng: np.random.Generator | None = None, outlier_px=0.0) -> TriangulationResult:
     """Robust multi-view triangulation.
 
     1. Hypotheses: DLT of observation pairs whose rays meet at >= ``min_angle_deg`` (all pairs, or
        ``max_pairs`` random ones drawn with ``rng``); keep the one with most observations within
-       ``outlier_sigma`` (whitened) that are in front of their camera.
+       the outlier threshold that are in front of their camera. The threshold of observation i is
+       ``max(outlier_sigma * sigma_i, outlier_px_i)`` pixels (``outlier_px``: scalar or (k,); a floor
+       that tolerates pose errors of the reconstruction larger than the measurement noise).
     2. Nonlinear least squares over all observations from there (``loss`` "huber", "cauchy",
        "soft_l1" or "linear"; ``f_scale`` in sigmas), then drop observations beyond ``outlier_sigma``
        and refit on the inliers.
@@ -153,6 +155,7 @@ def triangulate(observations: Sequence[Observation], loss: str = "huber", f_scal
     if k < 2:
         return TriangulationResult(nan3, False, "fewer than two observations")
     st = _Stack(observations)
+    thr = np.maximum(outlier_sigma, np.broadcast_to(np.asarray(outlier_px, float), (k,)) / st.sigma)
     pairs = list(combinations(range(k), 2))
     if len(pairs) > max_pairs:
         rng = np.random.default_rng(0) if rng is None else rng
@@ -164,8 +167,8 @@ def triangulate(observations: Sequence[Observation], loss: str = "huber", f_scal
             continue
         r = np.linalg.norm(st.residuals(X).reshape(-1, 2), axis=1)
         _, z = st.project(X)
-        inl = (r < outlier_sigma) & (z > 0)
-        key = (int(inl.sum()), float(np.minimum(r, outlier_sigma).sum()))
+        inl = (r < thr) & (z > 0)
+        key = (int(inl.sum()), float(np.minimum(r / thr, 1.0).sum()))
         if key[0] > best_key[0] or (key[0] == best_key[0] and key[1] < best_key[1]):
             best, best_key = X, key
     if best is None or best_key[0] < 2:
@@ -179,7 +182,7 @@ def triangulate(observations: Sequence[Observation], loss: str = "huber", f_scal
         X = sol.x
         r = np.linalg.norm(st.residuals(X).reshape(-1, 2), axis=1)
         _, z = st.project(X)
-        new_idx = np.flatnonzero((r < outlier_sigma) & (z > 0))
+        new_idx = np.flatnonzero((r < thr) & (z > 0))
         if len(new_idx) < 2:
             return TriangulationResult(nan3, False, "fewer than two inlier views after the robust fit")
         if np.array_equal(new_idx, idx):

@@ -133,3 +133,17 @@ def test_bundle_adjustment_pulls_perturbed_poses_towards_the_truth():
     # the datum is held by the pose priors: markers stay within a few prior sigmas of the truth
     assert np.abs(res.points - pts).max() < 3 * sig_pos
     assert np.all(np.isfinite(res.covariance)) and np.all(np.linalg.eigvalsh(res.covariance) > 0)
+
+
+def test_pixel_floor_of_the_outlier_threshold_keeps_views_with_pose_errors():
+    rng = np.random.default_rng(3)
+    obs = observe(X_TRUE, ring(8), CAM, 0.0)
+    # every view off by 2..4 px (as from pose errors of the reconstruction), sigma claims 0.3 px
+    obs = [Observation(o.camera, o.cam_from_world, o.uv + rng.uniform(2, 4) * np.array([np.cos(a), np.sin(a)]),
+                       0.3, o.image) for o, a in zip(obs, rng.uniform(0, 2 * np.pi, 8))]
+    strict = triangulate(obs, outlier_sigma=6.0)
+    tolerant = triangulate(obs, outlier_sigma=6.0, outlier_px=10.0)
+    assert strict.n_inliers < 8
+    assert tolerant.ok and tolerant.n_inliers == 8
+    assert 2.0 < tolerant.rms_px < 4.0
+    assert np.linalg.norm(tolerant.point - X_TRUE) < 0.02
