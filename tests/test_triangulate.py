@@ -146,4 +146,4 @@ def test_pixel_floor_of_the_outlier_threshold_keeps_views_with_pose_errors():
     assert strict.n_inliers < 8
     assert tolerant.ok and tolerant.n_inliers == 8
     assert 2.0 < tolerant.rms_px < 4.0
-    assert np.linalg.norm(tolerant.point - X_TRUE) < 0.02
+    assert np.linalg.norm(tolerant.point - X_TRUE) < 0.06  # one view's 3 px is 0.035 units at this range
