@@ -289,6 +289,10 @@ def test_cli_reads_odm_gcp_list_with_its_crs(tmp_path):
     d = json.loads(out.read_text())
     assert rc == 0 and d["status"] == "ok" and d["local_frame"]["crs"] == "EPSG:32632"
     assert {p["detected"]: p["surveyed"] for p in d["pairs"]} == {str(i): f"G{j}" for i, j in prob.true_pairing().items()}
+    # a --crs that contradicts the header is a usage error
+    rc = cli_main(["register", "--detected", str(tmp_path / "det.csv"), "--surveyed", str(tmp_path / "gcp_list.txt"),
+                   "--crs", "EPSG:32633", "--out", str(tmp_path / "other.json")])
+    assert rc == 2 and not (tmp_path / "other.json").exists()
 
 
 def test_cli_ambiguous_and_failed_exit_3_with_json(tmp_path):
