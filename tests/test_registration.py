@@ -342,3 +342,14 @@ def test_cli_reads_metashape_markers_with_chunk_crs(tmp_path):
     assert rc == 0 and d["status"] == "ok" and d["world"] == "local_frame"
     assert d["local_frame"]["crs"] == "EPSG:32632"
     assert {p["detected"]: p["surveyed"] for p in d["pairs"]} == {str(i): f"M{j}" for i, j in prob.true_pairing().items()}
+
+
+def test_duplicate_surveyed_point_makes_its_pairing_ambiguous_only_when_used():
+    rng = np.random.default_rng(23)
+    prob = simulate_detections(site(rng, 20), rng, n_seen=15, n_false=3)
+    used = int(prob.labels[prob.labels >= 0][0])
+    unseen = int(np.setdiff1d(np.arange(20), prob.labels)[0])
+    r = register_points(prob.detected, np.vstack([prob.surveyed, prob.surveyed[used]]), rng=rng)
+    assert r.status == "ambiguous" and f"{used}/20" in r.reason and len(r.pairs) == 15
+    r = register_points(prob.detected, np.vstack([prob.surveyed, prob.surveyed[unseen]]), rng=rng)
+    assert r.status == "ok" and r.pairing() == prob.true_pairing()
