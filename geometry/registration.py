@@ -184,7 +184,10 @@ class RegistrationResult:
 
 @lru_cache(maxsize=8)
 def _all_triplets(n: int) -> np.ndarray:
-    return np.array(list(itertools.combinations(range(n), 3)), dtype=np.intp).reshape(-1, 3)
+    """All C(n, 3) sorted index triplets, (T, 3); cached and read-only."""
+    out = np.array(list(itertools.combinations(range(n), 3)), dtype=np.intp).reshape(-1, 3)
+    out.flags.writeable = False
+    return out
 
 
 def _candidate_triplets(points: np.ndarray, full_limit: int, knn: int) -> np.ndarray:
