@@ -24,6 +24,7 @@ from cpdetect.cli import main
 from cpdetect.compare import (Recommendation, SiteDetectorResult, band_of, breakdown, instance_pr,
                               recommend_site, SIZE_BANDS, BLUR_BANDS)
 from cpdetect.evaluate import PixelCounts
+from cpdetect.html_report import read_rejects
 from cpdetect.imageio import read_image
 from cpdetect.plots import pixel_pr
 from cpdetect.rejects import apply_rejects
@@ -122,6 +123,18 @@ def test_site_report_opens_in_a_browser_with_plots_gallery_and_summary_table(sit
     assert n_plots == 2 and n_crops >= 8 * 9 and n_img == n_plots + n_crops
     # the gallery has a reject box per crop, carrying the detection's image and pixel
     assert dom.count('class="reject"') == n_crops and 'data-image="IMG_' in dom
+    # a reject ticked in the gallery, saved as rejects.json, removes exactly that detection on a rerun
+    tile = re.search(r'class="reject" data-id="([^"]+)" data-image="([^"]+)" data-x="([^"]+)" data-y="([^"]+)"',
+                     dom)
+    (tmp_path / "rejects.json").write_text(json.dumps({"format": "cpdetect.rejects/1", "rejects": [
+        {"id": tile.group(1), "image": tile.group(2), "x": float(tile.group(3)), "y": float(tile.group(4))}]}))
+    det_name = tile.group(1).split(":")[0]
+    dets = json.loads((out / "runs" / det_name / "detections.json").read_text())
+    by_image = {im["file"]: im["detections"] for im in dets["images"]}
+    applied = apply_rejects(by_image, read_rejects(tmp_path / "rejects.json"), tol_px=3.0)
+    assert len(applied.removed) == 1 and applied.removed[0]["image"] == tile.group(2)
+    assert applied.removed[0]["distance_px"] < 1e-3 and not applied.unmatched
+    assert sum(map(len, applied.detections.values())) == sum(map(len, by_image.values())) - 1
     rec = re.search(r'<div class="rec" id="recommendation">(.*?)</div>', dom, re.S).group(1)
     assert f"missed {DROPPED}" in rec
     markers = re.search(r'<table id="markers">(.*?)</table>', dom, re.S).group(1)
