@@ -14,7 +14,7 @@ from typing import Any, Optional, Union
 
 import numpy as np
 
-from .compare import DatasetComparison, SiteComparison, assign_detections, _union_observations
+from .compare import DatasetComparison, SiteComparison, assign_detections
 from .evaluate import _json_safe
 from .fileio import write_json_atomic, write_text_atomic
 from .html_report import GalleryItem, HtmlReport, crop_with_marker
@@ -199,44 +199,61 @@ def _read(path: Path):
 
 def site_gallery(cmp: SiteComparison, max_views: int = 8, max_other: int = 16, crop_px: int = 128
                  ) -> dict[str, list[GalleryItem]]:
-    """Review crops per detector: for each paired marker, up to ``max_views`` images where the detector
-    found it (the raw detection, with its centre drawn), then up to ``max_other`` detections that belong
-    to no paired marker. Item ids are ``detector:marker:image``; x, y are the raw detection's pixel."""
-    obs = _union_observations(cmp.detectors)
-    wanted: dict[str, list[tuple[str, str, int, dict]]] = {r.name: [] for r in cmp.detectors}
+    """Review crops per detector.
+
+    For each marker of the detector's georef run (paired ones in the surveyed points' order, then the
+    unpaired ones), up to ``max_views`` of its inlier observations: the image measurements georef
+    exports, with the refined centre drawn; the caption says whether the detector detected the marker in
+    that image or georef found it by projecting the marker there. Then up to ``max_other`` raw
+    detections that belong to no marker. Item ids are ``detector:marker:image``; x, y the drawn centre
+    (OpenCV pixels), which :func:`cpdetect.rejects.apply_rejects` matches within its tolerance.
+    """
+    wanted: dict[str, list[tuple]] = {r.name: [] for r in cmp.detectors}
+    order = {n: i for i, n in enumerate(cmp.surveyed_names)}
     for r in cmp.detectors:
-        per_marker: dict[str, int] = {}
-        other = 0
-        for image in sorted(r.detections):
-            dets = r.detections[image]
-            here = {n: pts for (n, im), pts in obs.items() if im == image}
-            assigned, free = assign_detections(dets, here)
-            for name in sorted(assigned):
-                if per_marker.get(name, 0) < max_views:
-                    per_marker[name] = per_marker.get(name, 0) + 1
-                    wanted[r.name].append((name, image, assigned[name], dets[assigned[name]]))
-            for k in free:
-                if other < max_other:
-                    other += 1
-                    wanted[r.name].append(("(unpaired)", image, k, dets[k]))
+        markers = sorted(r.report.get("markers", []),
+                         key=lambda m: (order.get(m.get("surveyed_name"), len(order)), m["id"]))
+        labels = {m["id"]: (m["surveyed_name"] if r.ok and m.get("surveyed_name") else f"{m['id']} (unpaired)")
+                  for m in markers}
+        per_image: dict[str, dict[str, list]] = {}
+        for m in markers:
+            for o in m["observations"]:
+                if o.get("inlier", True):
+                    per_image.setdefault(o["image"], {})[m["id"]] = [(float(o["x"]), float(o["y"]))]
+        det_of: dict[tuple[str, str], dict] = {}
+        other = []
+        for image in sorted(set(r.detections) | set(per_image)):
+            dets = r.detections.get(image, [])
+            assigned, free = assign_detections(dets, per_image.get(image, {}))
+            for mid, k in assigned.items():
+                det_of[(mid, image)] = dets[k]
+            other += [(image, dets[k]) for k in free]
+        for m in markers:
+            views = [o for o in sorted(m["observations"], key=lambda o: o["image"]) if o.get("inlier", True)]
+            radii = [float(det_of[(m["id"], o["image"])]["radius_px"]) for o in views
+                     if (m["id"], o["image"]) in det_of]
+            default_r = float(np.median(radii)) if radii else 10.0
+            for o in views[:max_views]:
+                d = det_of.get((m["id"], o["image"]))
+                how = f"detected, score {float(d['score']):.2f}" if d else "not detected (projected)"
+                wanted[r.name].append((labels[m["id"]], o["image"], float(o["x"]), float(o["y"]),
+                                       float(d["radius_px"]) if d else default_r, how))
+        for image, d in other[:max_other]:
+            wanted[r.name].append(("(no marker)", image, float(d["x"]), float(d["y"]), float(d["radius_px"]),
+                                   f"detection, score {float(d['score']):.2f}"))
     by_image: dict[str, list] = {}
     for det, items in wanted.items():
-        for (name, image, k, d) in items:
-            by_image.setdefault(image, []).append((det, name, k, d))
-    crops: dict[tuple[str, str, int], bytes] = {}
-    for image, items in by_image.items():
+        for k, it in enumerate(items):
+            by_image.setdefault(it[1], []).append((det, k))
+    crops: dict[tuple[str, int], bytes] = {}
+    for image, keys in sorted(by_image.items()):
         arr = _read(cmp.inputs.images / image)
-        for det, name, k, d in items:
-            crops[(det, image, k)] = crop_with_marker(arr, float(d["x"]), float(d["y"]),
-                                                      float(d.get("radius_px", 10.0)), crop_px)
-    order = {n: i for i, n in enumerate(cmp.surveyed_names)}
-    out = {}
-    for det, items in wanted.items():
-        items = sorted(items, key=lambda t: (order.get(t[0], len(order)), t[1], t[2]))
-        out[det] = [GalleryItem(f"{det}:{name}:{image}", image, float(d["x"]), float(d["y"]),
-                                crops[(det, image, k)], f"{name} · {image} · score {float(d['score']):.2f}")
-                    for name, image, k, d in items]
-    return out
+        for det, k in keys:
+            _, _, x, y, radius, _ = wanted[det][k]
+            crops[(det, k)] = crop_with_marker(arr, x, y, radius, crop_px)
+    return {det: [GalleryItem(f"{det}:{label}:{image}", image, x, y, crops[(det, k)], f"{label} · {image} · {how}")
+                  for k, (label, image, x, y, _, how) in enumerate(items)]
+            for det, items in wanted.items()}
 
 
 def dataset_gallery(cmp: DatasetComparison, max_items: int = 48, crop_px: int = 128) -> list[GalleryItem]:
@@ -311,8 +328,9 @@ def build_html(cmp: Comparison, gallery: bool = True) -> HtmlReport:
         rep.paragraph("None: every image has the same markers detected by every detector.")
     if gallery:
         rep.heading("Review gallery")
-        rep.paragraph("Each crop shows one detection with its centre drawn. Tick wrong ones and download "
-                      "rejects.json; a georef rerun with it drops them.", "note")
+        rep.paragraph("Each crop shows one image measurement of a marker as georef exports it (its refined "
+                      "centre drawn, up to 8 images per marker), then detections that belong to no marker. "
+                      "Tick wrong ones and download rejects.json; a georef rerun with it drops them.", "note")
         for det, items in site_gallery(cmp).items():
             rep.heading(det, 3)
             if items:
