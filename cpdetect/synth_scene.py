@@ -58,14 +58,16 @@ STREAMS = ("geometry", "appearance", "cameras", "markers", "effects", "cloud", "
 class SiteSettings:
     """Everything that defines a synthetic site (all lengths in metres unless stated).
 
-    n_images, width, height: the survey; markers: printed and surveyed markers (>= 3, all three types
-    when >= 3); unsurveyed_markers: printed but absent from gcps.csv; missing_markers: surveyed but never
-    printed (in gcps.csv, not in any image); hidden_surveyed: surveyed and printed where no camera sees
-    them; noise: photometric effects (exposure, vignetting, blur, sensor noise, JPEG quality 85-95) and
-    cloud noise; distortion: lens distortion; pose_noise: sigma (m) of the camera-centre perturbation in
-    sparse/ (rotation sigma pose_noise / 2 m, in radians); survey_sigma: sigma (m, per axis) of gcps.csv;
-    cloud_spacing: dense-cloud point spacing; supersample: sub-samples per axis at edges;
-    backgrounds: background split for textures ("train", "test", "all"); crs: the CRS label.
+    n_images, width, height: the survey; markers: printed and surveyed markers (>= 3, all three types;
+    each seen well by min(3, n_images // 2) images or more); unsurveyed_markers: printed but absent
+    from gcps.csv; missing_markers: surveyed but never printed (in gcps.csv, not in any image);
+    hidden_surveyed: surveyed and printed where no camera sees them; noise: photometric effects
+    (exposure, vignetting, blur, sensor noise, JPEG quality 85-95) and cloud noise; distortion: lens
+    distortion; pose_noise: sigma (m) of the camera-centre perturbation in sparse/ (rotation sigma
+    pose_noise / 2 m, in radians); survey_sigma: sigma (m, per axis) of gcps.csv; cloud_spacing:
+    dense-cloud point spacing; supersample: sub-samples per pixel axis at edges (supersample^2 rays);
+    backgrounds: background split for textures ("train", "test", "all"); crs: the CRS label;
+    distance: camera-to-shaft distance; jpeg_quality: JPEG quality without noise.
     """
 
     seed: int = 0
@@ -234,7 +236,7 @@ def build_site(settings: SiteSettings) -> Site:
     poses = survey_network(mesh.footprint, corner, camera, settings.n_images, rng["cameras"],
                            NetworkSettings(distance=settings.distance))
     probe = SiteRenderer(mesh, [], appearance)
-    min_views = min(3, settings.n_images)
+    min_views = min(3, max(1, settings.n_images // 2))  # 3 in any real survey; fewer for tiny tests
 
     def view_count(points, normals):
         border = 0.04 * camera.width
@@ -466,6 +468,9 @@ def write_site(out_dir: str | os.PathLike, settings: SiteSettings, overwrite: bo
 
         write_json_atomic(tmp / "truth.json", truth)
         _replace_folder(tmp, out_dir)
+    except OSError as exc:  # disk full, permissions changed under us...
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise InputError(f"cannot write the site: {exc.strerror or exc}", out_dir) from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
