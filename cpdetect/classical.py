@@ -115,10 +115,18 @@ class _Levels:
         for i in np.unique(idx):
             s, img = self.items[i]
             m = idx == i
-            lx = ((xs[m] + 0.5) / s - 0.5).astype(np.float32).reshape(-1, 1)
-            ly = ((ys[m] + 0.5) / s - 0.5).astype(np.float32).reshape(-1, 1)
-            v = cv2.remap(img, lx, ly, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
-            out[m] = v.ravel()
+            lx = ((xs[m] + 0.5) / s - 0.5).astype(np.float32)
+            ly = ((ys[m] + 0.5) / s - 0.5).astype(np.float32)
+            n = lx.size
+            cols = 1024  # remap wants maps under 32767 rows and columns
+            pad = (-n) % cols
+            mx = np.concatenate([lx, np.zeros(pad, np.float32)]).reshape(-1, cols)
+            my = np.concatenate([ly, np.zeros(pad, np.float32)]).reshape(-1, cols)
+            v = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()[:n].astype(np.float32)
+            h, w = img.shape[:2]
+            outside = ((lx < -0.5) | (ly < -0.5) | (lx > w - 0.5) | (ly > h - 0.5)).ravel()
+            v[outside] = np.nan
+            out[m] = v
         return out
 
 
@@ -230,6 +238,28 @@ class _Verifier:
         ys = y + radii[:, None] * self.sin[None, :]
         return self.levels.sample(xs, ys, np.broadcast_to(spacing[:, None], xs.shape))
 
+    def prefilter(self, xy: np.ndarray, r_start: np.ndarray, q_min: float = 0.55) -> np.ndarray:
+        """Vectorised first look at many candidates (n, 2) full-res: four inner rings with a strong,
+        steady second angular harmonic (the test that opens :meth:`core`). Returns a bool (n,)."""
+        if len(xy) == 0:
+            return np.zeros(0, bool)
+        # eight rings over r_start .. 1.7 r_start: a marker's core is at least that long at the
+        # level it is found on; texture saddles rarely keep a steady four-sector pattern so far
+        f = 1.08 ** np.arange(8)
+        radii = r_start[:, None] * f[None, :]  # (n, 8)
+        xs = xy[:, 0, None, None] + radii[:, :, None] * self.cos[None, None, :]
+        ys = xy[:, 1, None, None] + radii[:, :, None] * self.sin[None, None, :]
+        spacing = np.broadcast_to((radii * (TWO_PI / self.N_THETA))[:, :, None], xs.shape)
+        P = self.levels.sample(xs, ys, spacing).astype(np.float64)
+        ok = ~np.isnan(P).any(axis=(1, 2))
+        P = np.nan_to_num(P)
+        mean = P.mean(2, keepdims=True)
+        std = P.std(2) + 1e-6
+        h2 = ((P - mean) * np.exp(-2j * self.theta)[None, None, :]).mean(2)
+        q = math.sqrt(2) * np.abs(h2) / std
+        dphi = np.abs(_wrap(np.angle(h2) - np.angle(h2[:, :1])))
+        return ok & (q.min(1) >= q_min) & (dphi.max(1) <= math.radians(25))
+
     def is_xcorner(self, x: float, y: float, r_start: float, q_min: float = 0.75) -> bool:
         """Quick test: do four small rings around (x, y) show a strong, steady four-sector pattern?"""
         radii = r_start * 1.1 ** np.arange(4)
@@ -254,27 +284,37 @@ class _Verifier:
             h2 = np.nanmean((P - mean) * e2[None, :], 1)
             return mean, std, math.sqrt(2) * np.abs(h2) / std, np.angle(h2)
 
-        # cheap first look: the four inner rings must already show two dark and two bright sectors
-        radii = r_start * 1.08 ** np.arange(4)
-        P = self.polar(x, y, radii, radii * (TWO_PI / self.N_THETA))
-        if np.isnan(P).any():
-            return "too close to the border"
-        _, _, q, phi = harmonics(P)
-        if q.min() < 0.55 or np.abs(_wrap(phi - phi[0])).max() > math.radians(25):
-            return "no four-sector pattern"
+        # the prefilter has checked the four inner rings; sample outward chunk by chunk and stop
+        # once the rings reach well past the end of the four-sector core (bounded work per candidate)
         r_hi = max(self.max_radius * 1.7, r_start * 2)
-        n = int(math.ceil(math.log(r_hi / r_start) / math.log(1.08))) + 1
-        radii = r_start * 1.08 ** np.arange(n)
-        P = self.polar(x, y, radii, radii * (TWO_PI / self.N_THETA))
-        valid_ring = ~np.isnan(P).any(1)
-        mean, std, q, phi = harmonics(P)
-        ref = phi[0]
-        end = 0
-        for i in range(1, n):
-            if not valid_ring[i] or q[i] < 0.55 or abs(_wrap(phi[i] - ref)) > math.radians(25):
+        n_all = int(math.ceil(math.log(r_hi / r_start) / math.log(1.08))) + 1
+        chunks, end, ref, n = [], 0, None, 0
+        core_open = True
+        while n < n_all:
+            radii_c = r_start * 1.08 ** np.arange(n, min(n + 10, n_all))
+            chunks.append(self.polar(x, y, radii_c, radii_c * (TWO_PI / self.N_THETA)))
+            P = np.concatenate(chunks)
+            n = len(P)
+            if n == len(chunks[0]) and np.isnan(P[:3]).any():
+                return "too close to the border"
+            valid_ring = ~np.isnan(P).any(1)
+            mean, std, q, phi = harmonics(P)
+            if ref is None:
+                if q[0] < 0.55:
+                    return "no four-sector pattern"
+                ref = phi[0]
+            i = end + 1
+            while core_open and i < n:
+                if not valid_ring[i] or q[i] < 0.55 or abs(_wrap(phi[i] - ref)) > math.radians(25):
+                    core_open = False
+                    break
+                end = i
+                ref = np.angle(np.exp(1j * ref) * 0.7 + np.exp(1j * phi[i]) * 0.3)
+                i += 1
+            # boundaries lie within ~2x the core (square corners at 1.41x, tilt); keep a margin
+            if not core_open and r_start * 1.08 ** (n - 1) > 3.0 * r_start * 1.08 ** end:
                 break
-            end = i
-            ref = np.angle(np.exp(1j * ref) * 0.7 + np.exp(1j * phi[i]) * 0.3)
+        radii = r_start * 1.08 ** np.arange(n)
         if end < 2:
             return "four-sector core too small"
         core = slice(0, end + 1)
@@ -641,7 +681,7 @@ class ClassicalDetector:
             search = gray
         # levels fine enough for the smallest marker, coarse enough for the largest
         pyramid = build_pyramid(search)
-        full = gray.astype(np.float32) if k > 1 else None
+        full = gray if k > 1 else None  # sampled in place (uint8): no full-size float copy
         levels = _Levels(full, k, pyramid)
         cands = find_candidates(pyramid, 0.6 * s.min_contrast, s.max_candidates_per_level)
         verifier = _Verifier(levels, s, (w, h))
@@ -652,14 +692,19 @@ class ClassicalDetector:
         cand_xy = np.array([[(c.x + 0.5) * k - 0.5, (c.y + 0.5) * k - 0.5] for c in cands]).reshape(-1, 2)
         cand_c = np.array([c.contrast for c in cands])
         cand_scale = np.array([k * 2.0 ** c.level for c in cands])
-        for c in cands:
+        # one vectorised look at every candidate's inner rings before the per-candidate work
+        passed = verifier.prefilter(cand_xy, np.maximum(1.5, 1.5 * cand_scale))
+        for ci, c in enumerate(cands):
             scale = k * 2 ** c.level
             cx, cy = (c.x + 0.5) * k - 0.5, (c.y + 0.5) * k - 0.5
             if any(math.hypot(cx - v.x, cy - v.y) < max(0.5 * v.radius, 2.0 * scale) for v, _ in accepted):
                 continue
             r_start = max(1.5, 1.5 * scale)
+            if not passed[ci]:
+                rejected += 1
+                continue
             v = verifier.verify(cx, cy, r_start)
-            if isinstance(v, str):
+            if isinstance(v, str) or v.score < s.min_score:
                 rejected += 1
                 continue
             # the single saddle: no other strong X-corner around it (checkerboards, tag bit cells)
@@ -694,7 +739,7 @@ class ClassicalDetector:
                 poly = ((v.outline + 0.5) / k - 0.5) * 16.0
                 cv2.fillPoly(prob, [np.round(poly).astype(np.int32)], 1.0, lineType=cv2.LINE_AA, shift=4)
             np.clip(prob, 0.0, 1.0, out=prob)
-        extras = {"search_factor": k, "candidates": len(cands), "rejected": rejected}
+        extras = {"search_factor": k, "candidates": len(cands), "prefiltered": int(passed.sum()), "rejected": rejected}
         return DetectionResult(dets, (w, h), prob, 0.0, extras)
 
 

@@ -1,0 +1,302 @@
+"""Benchmark of the classical detector against its peers, in one run, on the same data.
+
+1. A generated set with *test*-split backgrounds (never used for tuning): ``--n`` images of 640x480
+   plus ``--n-large`` of 1600x1200. For each detector: marker recall, precision, false markers per
+   image, type accuracy, centre error (mean, median, p95, per radius bin, mean dx/dy for bias) and
+   throughput. Peers on the same images:
+   - chess-corners (``chess_corners``, Rust ChESS and Radon X-corner detectors, default multiscale
+     presets): its X-corners matched to the true markers with the same tolerance
+     (cpdetect.evaluate.tolerance_px): recall, false corners per image, centre error;
+   - ``cv2.cornerSubPix`` seeded at the true centre + U(-1, 1) px: centre error only, with the
+     usual fixed 5x5 half-window and with a window adapted to the marker (our default_window);
+   - our :func:`cpdetect.refine.refine_center` seeded the same way (isolates refinement).
+2. One 45 MP JPEG (8192x5460, an upscaled test background with markers): ``cv2.imread(GRAYSCALE)``
+   time vs ``ClassicalDetector().detect(path)`` time (medians), and the detector's peak memory
+   (ru_maxrss of a fresh subprocess, minus that of a subprocess that only imports the same modules).
+
+Writes bench/results/detect_bench.json and prints a summary.
+
+    .venv/bin/python bench/detect_bench.py            # ~ a few minutes on 2 cores
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+RESULTS = Path(__file__).parent / "results" / "detect_bench.json"
+
+
+def _stats(d: list[float]) -> dict:
+    a = np.asarray(d, float)
+    if a.size == 0:
+        return {"n": 0}
+    return {"n": int(a.size), "mean": float(a.mean()), "median": float(np.median(a)),
+            "p95": float(np.percentile(a, 95)), "max": float(a.max())}
+
+
+def make_sets(root: Path, n: int, n_large: int, seed: int) -> list[Path]:
+    from cpdetect.synth_images import SynthImageOptions, write_synth_images
+
+    sets = []
+    if n:
+        write_synth_images(root / "small", n, seed, SynthImageOptions(split="test"), workers=2)
+        sets.append(root / "small")
+    if n_large:
+        write_synth_images(root / "large", n_large, seed + 1,
+                           SynthImageOptions(split="test", width=1600, height=1200), workers=2)
+        sets.append(root / "large")
+    return sets
+
+
+def bench_classical(datasets, det) -> dict:
+    import cv2
+
+    from cpdetect.evaluate import match_detections
+
+    n_img = n_truth = n_det = tp = type_ok = 0
+    errs, dxs, dys, by_bin, mp, secs = [], [], [], {}, 0.0, 0.0
+    for ds in datasets:
+        for item in ds.images:
+            img = cv2.imread(str(ds.image_path(item)), cv2.IMREAD_COLOR)
+            t0 = time.perf_counter()
+            res = det.detect(img)
+            secs += time.perf_counter() - t0
+            mp += img.shape[0] * img.shape[1] / 1e6
+            pairs, fp, fn = match_detections(res.detections, item.markers)
+            n_img += 1
+            n_truth += len(item.markers)
+            n_det += len(res.detections)
+            tp += len(pairs)
+            for m in pairs:
+                d, t = res.detections[m.det], item.markers[m.truth]
+                errs.append(m.distance)
+                dxs.append(d.x - t.x)
+                dys.append(d.y - t.y)
+                type_ok += d.type == t.type
+                b = "8-16" if t.radius_px < 16 else "16-32" if t.radius_px < 32 else "32-64" if t.radius_px < 64 else "64+"
+                by_bin.setdefault(b, []).append(m.distance)
+    return {"images": n_img, "markers": n_truth, "detections": n_det, "recall": tp / max(n_truth, 1),
+            "precision": tp / max(n_det, 1), "false_markers_per_image": (n_det - tp) / max(n_img, 1),
+            "type_accuracy": type_ok / max(tp, 1), "centre_error_px": _stats(errs),
+            "centre_error_by_radius_px": {k: _stats(v) for k, v in sorted(by_bin.items())},
+            "bias_px": {"dx_mean": float(np.mean(dxs)) if dxs else None, "dy_mean": float(np.mean(dys)) if dys else None},
+            "seconds": secs, "seconds_per_image": secs / max(n_img, 1), "megapixels_per_second": mp / max(secs, 1e-9)}
+
+
+def bench_chess(datasets, preset: str) -> dict:
+    import chess_corners
+    import cv2
+
+    from cpdetect.evaluate import tolerance_px
+
+    det = chess_corners.Detector(getattr(chess_corners.DetectorConfig, preset)())
+    n_img = n_truth = n_corners = tp = 0
+    errs, secs, mp = [], 0.0, 0.0
+    for ds in datasets:
+        for item in ds.images:
+            g = np.ascontiguousarray(cv2.imread(str(ds.image_path(item)), cv2.IMREAD_GRAYSCALE))
+            t0 = time.perf_counter()
+            r = det.detect(g)
+            secs += time.perf_counter() - t0
+            mp += g.size / 1e6
+            xy = np.asarray(r.xy, float).reshape(-1, 2)
+            n_img += 1
+            n_truth += len(item.markers)
+            n_corners += len(xy)
+            used = np.zeros(len(xy), bool)
+            for t in item.markers:  # nearest unused corner within the tolerance
+                if not len(xy):
+                    break
+                d = np.hypot(xy[:, 0] - t.x, xy[:, 1] - t.y)
+                d[used] = np.inf
+                j = int(np.argmin(d))
+                if d[j] <= tolerance_px(t.radius_px):
+                    used[j] = True
+                    tp += 1
+                    errs.append(float(d[j]))
+    return {"preset": preset, "images": n_img, "markers": n_truth, "corners": n_corners, "recall": tp / max(n_truth, 1),
+            "false_corners_per_image": (n_corners - tp) / max(n_img, 1), "centre_error_px": _stats(errs),
+            "seconds_per_image": secs / max(n_img, 1), "megapixels_per_second": mp / max(secs, 1e-9)}
+
+
+def bench_seeded_refiners(datasets, seed: int) -> dict:
+    """Centre error of refiners seeded at truth + U(-1, 1) px (markers at least 2 px inside the image)."""
+    import cv2
+
+    from cpdetect.refine import default_window, refine_center
+
+    rng = np.random.default_rng(seed)
+    out = {"cornerSubPix_win5": [], "cornerSubPix_adaptive": [], "refine_center_auto": [], "refine_center_hough": [],
+           "refine_center_saddle": []}
+    dx_auto = []
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
+    for ds in datasets:
+        for item in ds.images:
+            g = cv2.imread(str(ds.image_path(item)), cv2.IMREAD_GRAYSCALE)
+            h, w = g.shape
+            for t in item.markers:
+                if not (8 <= t.x <= w - 9 and 8 <= t.y <= h - 9):
+                    continue
+                s = np.array([t.x, t.y]) + rng.uniform(-1, 1, 2)
+                for key, win in (("cornerSubPix_win5", 5), ("cornerSubPix_adaptive", int(round(default_window(t.radius_px))))):
+                    p = s.reshape(1, 1, 2).astype(np.float32)
+                    p = cv2.cornerSubPix(g, p, (win, win), (-1, -1), crit)
+                    out[key].append(float(np.hypot(p[0, 0, 0] - t.x, p[0, 0, 1] - t.y)))
+                for method in ("auto", "hough", "saddle"):
+                    r = refine_center(g, s[0], s[1], t.radius_px, method=method)
+                    out[f"refine_center_{method}"].append(float(np.hypot(r.x - t.x, r.y - t.y)))
+                    if method == "auto":
+                        dx_auto.append(r.x - t.x)
+    res = {k: _stats(v) for k, v in out.items()}
+    res["refine_center_auto"]["dx_mean"] = float(np.mean(dx_auto)) if dx_auto else None
+    return res
+
+
+def make_45mp(path: Path, seed: int) -> list[dict]:
+    import cv2
+
+    from cpdetect.backgrounds import list_backgrounds
+    from cpdetect.markers import MarkerSpec, frontal_homography, projected_radius, render_marker
+
+    rng = np.random.default_rng(seed)
+    bg = list_backgrounds("test")[0]
+    img = cv2.imread(str(bg.path), cv2.IMREAD_COLOR)
+    W, H = 8192, 5460
+    img = cv2.resize(img, (W, H), interpolation=cv2.INTER_CUBIC).astype(np.float32)
+    truth = []
+    for k, (r, mtype) in enumerate([(24, "square"), (60, "circle"), (150, "diagonal"), (400, "square"),
+                                    (40, "diagonal"), (90, "circle")]):
+        cx, cy = 700 + (k % 3) * 2600 + rng.uniform(0, 600), 900 + (k // 3) * 2600 + rng.uniform(0, 600)
+        spec = MarkerSpec(mtype, 1.0, margin_m=0.1)
+        Hm = frontal_homography((cx, cy), r, rng.uniform(0, np.pi), spec)
+        render_marker(spec, Hm, (H, W), supersample=4).composite(img, 30.0, 220.0, 235.0)
+        truth.append({"x": cx, "y": cy, "type": mtype, "radius_px": projected_radius(spec, Hm)})
+    img += np.random.default_rng(seed + 1).normal(0, 2.0, img.shape).astype(np.float32)
+    cv2.imwrite(str(path), np.clip(img + 0.5, 0, 255).astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, 92])
+    return truth
+
+
+_MEM_CHILD = r"""
+import resource, sys, time
+import cv2, numpy as np
+from cpdetect.classical import ClassicalDetector
+det = ClassicalDetector()
+base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+if sys.argv[2] == "detect":
+    res = det.detect(sys.argv[1])
+    n = len(res.detections)
+else:
+    g = cv2.imread(sys.argv[1], cv2.IMREAD_GRAYSCALE)
+    n = 0
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print(base, peak, n)
+"""
+
+
+def bench_45mp(tmp: Path, seed: int, repeats: int) -> dict:
+    import cv2
+
+    from cpdetect.classical import ClassicalDetector
+
+    path = tmp / "big45.jpg"
+    truth = make_45mp(path, seed)
+    det = ClassicalDetector()
+    t_read, t_det = [], []
+    res = None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        g = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        t_read.append(time.perf_counter() - t0)
+        del g
+        t0 = time.perf_counter()
+        res = det.detect(str(path))
+        t_det.append(time.perf_counter() - t0)
+    found = []
+    for t in truth:
+        d = [math.hypot(m.x - t["x"], m.y - t["y"]) for m in res.detections]
+        found.append(bool(d) and min(d) <= max(3.0, 0.25 * t["radius_px"]))
+    mem = {}
+    for mode in ("detect", "imread"):
+        out = subprocess.run([sys.executable, "-c", _MEM_CHILD, str(path), mode], capture_output=True, text=True,
+                             timeout=600)
+        base, peak, _ = (int(v) for v in out.stdout.split())
+        mem[mode] = {"ru_maxrss_mb_after_imports": base / 1024, "ru_maxrss_mb_peak": peak / 1024,
+                     "increase_mb": (peak - base) / 1024}
+    return {"width": 8192, "height": 5460, "markers": len(truth), "found": int(sum(found)),
+            "false_markers": len(res.detections) - int(sum(found)),
+            "imread_gray_seconds_median": float(np.median(t_read)), "detect_seconds_median": float(np.median(t_det)),
+            "ratio_detect_to_imread": float(np.median(t_det) / np.median(t_read)),
+            "search_factor": res.extras.get("search_factor"), "memory": mem}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=100)
+    ap.add_argument("--n-large", type=int, default=4)
+    ap.add_argument("--seed", type=int, default=2024)
+    ap.add_argument("--data", help="reuse this folder for the generated sets")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--out", default=str(RESULTS))
+    ap.add_argument("--skip-45mp", action="store_true")
+    args = ap.parse_args(argv)
+
+    from cpdetect.classical import ClassicalDetector
+    from cpdetect.dataset import load_dataset
+    from cpdetect.fileio import write_json_atomic
+
+    tmp = Path(args.data) if args.data else Path(tempfile.mkdtemp(prefix="cpdetect_bench_"))
+    tmp.mkdir(parents=True, exist_ok=True)
+    roots = [tmp / "small", tmp / "large"]
+    if not all((r / "markers.json").exists() for r in roots):
+        make_sets(tmp, args.n, args.n_large, args.seed)
+    datasets = [load_dataset(r) for r in roots if (r / "markers.json").exists()]
+    t0 = time.time()
+    report = {"generated": {"root": str(tmp), "seed": args.seed, "split": "test",
+                            "images": {d.root.name: len(d.images) for d in datasets}}}
+    print("classical ...", file=sys.stderr)
+    report["classical"] = bench_classical(datasets, ClassicalDetector())
+    report["classical_small_only"] = bench_classical(datasets[:1], ClassicalDetector())  if len(datasets) > 1 else None
+    print("chess-corners ...", file=sys.stderr)
+    report["chess_corners"] = {p: bench_chess(datasets, p) for p in ("chess_multiscale", "radon_multiscale")}
+    print("seeded refiners ...", file=sys.stderr)
+    report["seeded_refiners"] = bench_seeded_refiners(datasets, args.seed)
+    if not args.skip_45mp:
+        print("45 MP ...", file=sys.stderr)
+        report["jpeg_45mp"] = bench_45mp(tmp, args.seed, args.repeats)
+    report["bench_seconds"] = time.time() - t0
+    write_json_atomic(args.out, report)
+
+    c = report["classical"]
+    ce = c["centre_error_px"]
+    print(f"classical      recall {c['recall']:.3f}  precision {c['precision']:.3f}  false/img "
+          f"{c['false_markers_per_image']:.3f}  type acc {c['type_accuracy']:.3f}  centre mean {ce.get('mean', float('nan')):.3f} "
+          f"p95 {ce.get('p95', float('nan')):.3f} px  bias ({c['bias_px']['dx_mean']:+.4f}, {c['bias_px']['dy_mean']:+.4f})  "
+          f"{c['seconds_per_image']:.2f} s/img")
+    for k, v in c["centre_error_by_radius_px"].items():
+        print(f"   radius {k:>6} px: n {v['n']:4d}  mean {v['mean']:.3f}  p95 {v['p95']:.3f}")
+    for p, v in report["chess_corners"].items():
+        e = v["centre_error_px"]
+        print(f"chess-corners {p:17s} recall {v['recall']:.3f}  false corners/img {v['false_corners_per_image']:.1f}  "
+              f"centre mean {e.get('mean', float('nan')):.3f} p95 {e.get('p95', float('nan')):.3f} px  {v['seconds_per_image']*1000:.1f} ms/img")
+    for k, v in report["seeded_refiners"].items():
+        print(f"seeded {k:24s} mean {v['mean']:.3f}  median {v['median']:.3f}  p95 {v['p95']:.3f} px (n {v['n']})")
+    if "jpeg_45mp" in report:
+        j = report["jpeg_45mp"]
+        print(f"45 MP JPEG: imread gray {j['imread_gray_seconds_median']:.3f} s, detect {j['detect_seconds_median']:.3f} s, "
+              f"ratio {j['ratio_detect_to_imread']:.2f}; found {j['found']}/{j['markers']}, false {j['false_markers']}; "
+              f"peak RSS increase {j['memory']['detect']['increase_mb']:.0f} MB (imread alone "
+              f"{j['memory']['imread']['increase_mb']:.0f} MB)")
+    print(f"written {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
