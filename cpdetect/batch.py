@@ -12,6 +12,15 @@ image), with "/" separators. While running, each finished image is written atomi
 ``<out>.parts/<sha1 of file>.json``; a rerun with the same output skips images already done (the part
 records the detector and its settings; a part made with other settings is redone). The final file is
 assembled in input order and the parts folder is removed after it is written.
+
+Where the work runs is an :class:`~cpdetect.executors.Executor`: serial, a local process pool
+(``workers``) or a Dask cluster (``scheduler``: an address or a ``distributed.Client``). Each task gets
+the image's path and reads the image itself (on a cluster: from storage every worker can see), and
+sends back only the small record; the results, in input order, are identical whatever the executor
+(but for the ``seconds`` timings). Memory is bounded by the images in flight, never by their number.
+
+A run that stops on an error keeps the parts of the images it finished (a rerun resumes), but leaves
+no output file and no empty parts folder behind.
 """
 from __future__ import annotations
 
@@ -20,11 +29,13 @@ import json
 import logging
 import os
 import shutil
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from .errors import CpdetectError, InputError
+from .executors import SerialExecutor, make_executor
 from .fileio import write_json_atomic
 
 log = logging.getLogger(__name__)
@@ -83,32 +94,73 @@ def run_one(detector: Any, job: BatchJob, skip_bad: bool) -> dict:
             "detections": [d.to_dict() for d in res.detections]}
 
 
-# worker-process state (a process pool builds the detector once per worker)
-_W: dict = {}
+# detectors built in this process or thread, by (name, settings): a task builds its detector once per
+# worker, not once per image. Thread-local because a Dask worker may run tasks in several threads.
+_LOCAL = threading.local()
 
 
-def _init_worker(name: str, settings: dict, skip_bad: bool) -> None:
+def _cached_detector(name: str, settings: dict) -> Any:
     from .detector import get_detector
 
-    _W["det"] = get_detector(name, **settings)
-    _W["skip_bad"] = skip_bad
+    cache = getattr(_LOCAL, "detectors", None)
+    if cache is None:
+        cache = _LOCAL.detectors = {}
+    key = (name, json.dumps(settings, sort_keys=True))
+    if key not in cache:
+        cache[key] = get_detector(name, **settings)
+    return cache[key]
 
 
-def _work(job: BatchJob) -> dict:
-    try:
-        return run_one(_W["det"], job, _W["skip_bad"])
-    except CpdetectError as exc:
-        return {"file": job.rel, "fatal": str(exc)}
+@dataclass(frozen=True)
+class DetectTask:
+    """The per-image task an executor runs: ``task(job) -> record`` (see :func:`run_one`).
+
+    Picklable (it travels to worker processes and Dask workers). A :class:`CpdetectError` that is not
+    skipped comes back as ``{"file": rel, "fatal": message}`` so that the caller stops with the
+    one-line message whatever the executor.
+    """
+
+    detector: str
+    settings: dict
+    skip_bad: bool = False
+
+    def __call__(self, job: BatchJob) -> dict:
+        try:
+            return run_one(_cached_detector(self.detector, self.settings), job, self.skip_bad)
+        except CpdetectError as exc:
+            return {"file": job.rel, "fatal": str(exc)}
 
 
 def detect_batch(jobs: Sequence[BatchJob], detector_name: str, settings: dict, out: str | os.PathLike,
-                 workers: int = 1, skip_bad: bool = False, progress: Callable[[int, int], None] | None = None) -> dict:
-    """Run the detector on every job, resumably (see module doc); returns the output document."""
-    from .detector import get_detector
+                 workers: int = 1, skip_bad: bool = False, progress: Callable[[int, int], None] | None = None,
+                 scheduler: Any = None, executor: Any = None) -> dict:
+    """Run the detector on every job, resumably (see module doc); returns the output document.
 
+    Where it runs: ``executor`` (an :class:`~cpdetect.executors.Executor`, used and not closed) if
+    given, else a Dask cluster if ``scheduler`` (address or ``distributed.Client``), else ``workers``
+    local processes (1: in this process).
+    """
     out = Path(out)
     parts = out.with_name(out.name + ".parts")
-    parts.mkdir(parents=True, exist_ok=True)
+    if out.is_dir():
+        raise InputError("the output is a folder; give a file name such as detections.json", out)
+    try:
+        parts.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot write here: {exc.strerror or exc}", parts) from None
+    try:
+        return _run_batch(jobs, detector_name, settings, out, parts, workers, skip_bad, progress, scheduler,
+                          executor)
+    except BaseException:
+        # keep finished parts for a rerun, but no empty parts folder
+        try:
+            parts.rmdir()
+        except OSError:
+            pass
+        raise
+
+
+def _run_batch(jobs, detector_name, settings, out, parts, workers, skip_bad, progress, scheduler, executor) -> dict:
     stamp = {"detector": detector_name, "settings": settings}
     done: dict[str, dict] = {}
     for job in jobs:
@@ -135,17 +187,24 @@ def detect_batch(jobs: Sequence[BatchJob], detector_name: str, settings: dict, o
         if progress:
             progress(n_done, len(jobs))
 
-    if workers <= 1 or len(todo) <= 1:
-        det = get_detector(detector_name, **settings)
-        for job in todo:
-            finish(run_one(det, job, skip_bad))
-    else:
-        import multiprocessing as mp
-
-        ctx = mp.get_context("spawn")
-        with ctx.Pool(workers, initializer=_init_worker, initargs=(detector_name, settings, skip_bad)) as pool:
-            for rec in pool.imap(_work, todo, chunksize=1):
+    if n_done:
+        log.info("resuming: %d of %d images already done in %s", n_done, len(jobs), parts)
+    task = DetectTask(detector_name, settings, skip_bad)
+    if executor is None and scheduler is None and len(todo) <= 1:
+        workers = 1  # no pool for one image
+    if todo:
+        own = executor is None
+        ex = make_executor(workers, scheduler) if own else executor
+        try:
+            if not isinstance(ex, SerialExecutor):  # remote workers resolve paths from their own cwd
+                todo = [BatchJob(os.path.abspath(j.path), j.rel) for j in todo]
+            for rec in ex.imap(task, todo):
                 finish(rec)
+                log.debug("processed %s", rec["file"])
+        finally:
+            if own:
+                ex.close()
+    log.info("processed %d images (%d done before)", len(todo), len(jobs) - len(todo))
     doc = {"format": FORMAT, "detector": detector_name, "settings": settings,
            "images": [done[j.rel] for j in jobs]}
     write_json_atomic(out, doc)
@@ -153,4 +212,4 @@ def detect_batch(jobs: Sequence[BatchJob], detector_name: str, settings: dict, o
     return doc
 
 
-__all__ = ["FORMAT", "BatchJob", "collect_jobs", "detect_batch", "run_one", "part_name"]
+__all__ = ["FORMAT", "BatchJob", "DetectTask", "collect_jobs", "detect_batch", "run_one", "part_name"]

@@ -13,6 +13,9 @@ def register(sub) -> None:
     p.add_argument("--set", dest="settings", action="append", default=[], metavar="KEY=VALUE",
                    help="detector setting (repeatable); values are read as JSON when they parse")
     p.add_argument("--workers", type=int, default=1, help="worker processes (results identical to serial)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run on a Dask cluster (pip install 'cpdetect[dask]'), e.g. tcp://host:8786; every "
+                        "worker must see the images at the same path (shared storage). Overrides --workers")
     p.add_argument("--skip-bad", action="store_true",
                    help="record unreadable images as errors and go on (default: stop at the first)")
     p.set_defaults(func=run)
@@ -34,7 +37,7 @@ def run(args) -> int:
     jobs = collect_jobs(args.inputs)
     with tqdm(total=len(jobs), unit="img", disable=None, leave=False) as bar:
         doc = detect_batch(jobs, args.detector, settings, args.out, workers=args.workers, skip_bad=args.skip_bad,
-                           progress=lambda k, _n: bar.update(k - bar.n))
+                           progress=lambda k, _n: bar.update(k - bar.n), scheduler=args.scheduler or None)
     n_det = sum(len(im.get("detections", [])) for im in doc["images"])
     n_bad = sum(1 for im in doc["images"] if "error" in im)
     logging.getLogger("cpdetect").info("%d images, %d detections%s -> %s", len(doc["images"]), n_det,
