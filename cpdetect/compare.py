@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping, Optional, Sequence
 
@@ -44,6 +44,8 @@ UNKNOWN = "unknown"
 # a residual RMS is "comparable" to another when within this ratio or this many metres
 RMS_REL_MARGIN = 0.2
 RMS_ABS_MARGIN_M = 0.001
+# median centre errors (pixels) within RMS_REL_MARGIN or this many pixels count as equal
+CENTRE_ABS_MARGIN_PX = 0.05
 # one detector is "faster" when its time is below this fraction of the other's and shorter by at least
 # SPEED_ABS_MARGIN_S seconds over the whole run (timings of a few milliseconds are noise)
 SPEED_MARGIN = 0.8
@@ -301,9 +303,10 @@ def _fmt(v: Any, spec: str = ".3f", unit: str = "") -> str:
 
 
 def recommend_dataset(results: Sequence[DatasetDetectorResult]) -> Recommendation:
-    """Best instance F1 wins; within two standard errors of F1, the lower median centre error (by more
-    than 20 %), then the faster detector (by more than 20 %). The evidence is insufficient with fewer
-    than 30 true markers, one detector only, or when nothing separates the best two."""
+    """Instance F1 first: detectors within two standard errors of the best F1 count as tied; among
+    them, the lowest median centre error (others within 20 % or 0.05 px count as tied); among those,
+    the fastest (:func:`faster`, on the whole run). The evidence is insufficient with fewer than 30
+    true markers, one detector only, or when nothing separates the chosen detector from the runner-up."""
     if not results:
         return Recommendation(None, ["no detector was compared"], True)
     n = results[0].summary["markers"]
@@ -320,42 +323,53 @@ def recommend_dataset(results: Sequence[DatasetDetectorResult]) -> Recommendatio
         v = r.summary["seconds_per_megapixel"]
         return math.inf if v is None else float(v)
 
-    ranked = sorted(results, key=lambda r: (-f1(r), err(r), spmp(r)))
-    best = ranked[0]
-    s = best.summary
-    lines = [f"{best.name}: F1 {_fmt(s['f1'])} (recall {_fmt(s['recall'])}, precision {_fmt(s['precision'])}), "
-             f"median centre error {_fmt(s['centre_error_px']['median'], '.2f', ' px')}, "
-             f"{_fmt(s['seconds_per_megapixel'], '.2f', ' s/MP')}"]
+    def secs(r):
+        return float(r.summary.get("seconds") or 0.0)
+
+    def describe(r):
+        s = r.summary
+        return (f"{r.name}: F1 {_fmt(s['f1'])} (recall {_fmt(s['recall'])}, precision {_fmt(s['precision'])}), "
+                f"median centre error {_fmt(s['centre_error_px']['median'], '.2f', ' px')}, "
+                f"{_fmt(s['seconds_per_megapixel'], '.2f', ' s/MP')}")
+
+    def err_tied(a, b):
+        return abs(err(a) - err(b)) <= max(CENTRE_ABS_MARGIN_PX, RMS_REL_MARGIN * min(err(a), err(b)))
+
+    margin = _f1_margin(max(f1(r) for r in results), n)
+    top = max(f1(r) for r in results)
+    tied = [r for r in results if top - f1(r) <= margin]
+    emin = min(tied, key=err)
+    tied = [r for r in tied if err_tied(r, emin)]
+    best = min(tied, key=lambda r: (secs(r), -f1(r)))
+    others = sorted((r for r in results if r is not best), key=lambda r: (-f1(r), err(r), spmp(r)))
+    lines = [describe(best)]
     notes = []
     if n < 30:
         notes.append(f"insufficient evidence: only {n} true markers in the dataset (use 30 or more)")
-    if len(ranked) == 1:
-        notes.append("insufficient evidence: only one detector was compared")
-        return Recommendation(best.name, lines + notes, True)
-    margin = _f1_margin(f1(best), n)
     decided = False
-    for other in ranked[1:]:
-        o = other.summary
-        d = f1(best) - f1(other)
-        part = (f"{other.name}: F1 {_fmt(o['f1'])} (recall {_fmt(o['recall'])}, precision {_fmt(o['precision'])}), "
-                f"median centre error {_fmt(o['centre_error_px']['median'], '.2f', ' px')}, "
-                f"{_fmt(o['seconds_per_megapixel'], '.2f', ' s/MP')}")
-        if d > margin:
-            part += f"; F1 lower by {d:.3f} (more than two standard errors, {margin:.3f})"
-            decided = decided or other is ranked[1]
+    for other in others:
+        part = describe(other)
+        if f1(best) - f1(other) > margin:
+            part += f"; F1 lower by {f1(best) - f1(other):.3f} (more than two standard errors, {margin:.3f})"
+            runner_decided = True
+        elif not err_tied(best, other) and err(other) > err(best):
+            part += f"; F1 comparable (within {margin:.3f}), centre error larger"
+            runner_decided = True
+        elif faster(secs(best), secs(other)):
+            part += f"; F1 and centre error comparable, {spmp(other) / spmp(best):.1f}x slower"
+            runner_decided = True
         else:
-            part += f"; F1 within two standard errors ({margin:.3f})"
-            if other is ranked[1]:
-                if err(best) < (1 - RMS_REL_MARGIN) * err(other):
-                    part += f"; {best.name} places centres more precisely"
-                    decided = True
-                elif spmp(best) < SPEED_MARGIN * spmp(other) and faster(best.summary["seconds"] or 0.0,
-                                                                         other.summary["seconds"] or 0.0):
-                    part += f"; {best.name} is {spmp(other) / spmp(best):.1f}x faster"
-                    decided = True
+            part += "; F1, centre error and speed comparable"
+            runner_decided = False
+        if other is others[0]:
+            decided = runner_decided
+            if faster(secs(best), secs(other)):
+                lines[0] += f", {spmp(other) / spmp(best):.1f}x faster than {other.name}"
         lines.append(part)
-    if not decided:
-        notes.append(f"insufficient evidence: {ranked[0].name} and {ranked[1].name} are not separated by F1, "
+    if not others:
+        notes.append("insufficient evidence: only one detector was compared")
+    elif not decided:
+        notes.append(f"insufficient evidence: {best.name} and {others[0].name} are not separated by F1, "
                      "centre error or speed on this dataset")
     return Recommendation(best.name, lines + notes, bool(notes))
 
@@ -641,88 +655,95 @@ def site_agreement(results: Sequence[SiteDetectorResult], surveyed_names: Sequen
 def recommend_site(results: Sequence[SiteDetectorResult], n_surveyed: int) -> Recommendation:
     """Completeness of the pairings first, then residual RMS, then speed (see the module docstring).
 
-    RMS values within 20 % or 1 mm of each other count as equal; a detector is faster when it needs
-    less than 80 % of the other's time and at least half a second less (:func:`faster`). The evidence is insufficient when no detector georeferenced
-    the site, when the best pairs fewer than 4 surveyed points (residuals of a 7-parameter fit on 3 points
-    say little), when only one detector ran, or when nothing separates the best two.
+    Among the detectors with the most pairings (a clean ``ok`` status preferred over ``ambiguous``),
+    those whose RMS is within 20 % or 1 mm of the lowest count as tied, and the fastest of them is
+    chosen (:func:`faster`: under 80 % of the other's time and at least half a second less). The
+    evidence is insufficient when no detector georeferenced the site, when the choice pairs fewer than
+    4 surveyed points (residuals of a 7-parameter fit on 3 points say little), when only one detector
+    ran, or when nothing separates the choice from the runner-up.
     """
     if not results:
         return Recommendation(None, ["no detector was compared"], True)
 
-    def key(r: SiteDetectorResult):
-        rms = r.rms_m if r.rms_m is not None else math.inf
-        return (-len(r.paired), r.report.get("status") != "ok", rms, r.seconds)
+    def rms(r: SiteDetectorResult) -> float:
+        return r.rms_m if r.rms_m is not None else math.inf
 
-    ranked = sorted(results, key=key)
-    best = ranked[0]
-    if not best.ok or not best.paired:
+    def rms_tied(a: float, b: float) -> bool:
+        return abs(a - b) <= max(RMS_ABS_MARGIN_M, RMS_REL_MARGIN * max(a, b))
+
+    usable = [r for r in results if r.ok and r.paired]
+    if not usable:
         lines = ["insufficient evidence: no detector georeferenced the site"]
-        for r in ranked:
+        for r in results:
             lines.append(f"{r.name}: {r.report.get('status')} ({r.report.get('reason') or 'no reason given'}), "
                          f"{r.report.get('n_markers', 0)} markers found")
         return Recommendation(None, lines, True)
-    n_best = len(best.paired)
+    n_best = max(len(r.paired) for r in usable)
+    top = [r for r in usable if len(r.paired) == n_best]
+    top = [r for r in top if r.report.get("status") == "ok"] or top
+    rmin = min(rms(r) for r in top)
+    best = min((r for r in top if rms_tied(rms(r), rmin)), key=lambda r: (r.seconds, rms(r)))
+    others = sorted((r for r in results if r is not best),
+                    key=lambda r: (-len(r.paired), r.report.get("status") != "ok", rms(r), r.seconds))
     what = (f"all {n_surveyed} surveyed markers paired" if n_best == n_surveyed
             else f"{n_best} of {n_surveyed} surveyed markers paired")
     head = f"{best.name}: {what}, residual RMS {1000 * best.rms_m:.1f} mm"
     if best.report.get("status") == "ambiguous":
         head += " (pairing ambiguous)"
     lines = [head]
-    insufficient = False
+    notes = []
     decided = False
-    for other in ranked[1:]:
+    for other in others:
         n_o = len(other.paired)
         if not other.ok:
-            lines.append(f"{other.name}: {other.report.get('status')} ({other.report.get('reason') or 'no reason'}),"
-                         f" {other.report.get('n_markers', 0)} markers found")
-            decided = decided or other is ranked[1]
-            continue
-        same = set(other.paired) == set(best.paired)
-        if same:
-            part = f"{other.name} found the same {n_o}"
+            part = (f"{other.name}: {other.report.get('status')} ({other.report.get('reason') or 'no reason'}), "
+                    f"{other.report.get('n_markers', 0)} markers found")
+            runner_decided = True
         else:
-            missed = sorted(set(best.paired) - set(other.paired))
-            extra = sorted(set(other.paired) - set(best.paired))
-            part = f"{other.name} paired {n_o} of {n_surveyed}"
-            if missed:
-                part += f" (missed {', '.join(missed)})"
-            if extra:
-                part += f" (but also {', '.join(extra)})"
-        part += f", residual RMS {1000 * other.rms_m:.1f} mm"
-        ratio = other.seconds / best.seconds if best.seconds > 0 else math.inf
-        if n_o < n_best:
-            part += "; fewer pairings"
-            decided = decided or other is ranked[1]
-        else:
-            comparable = (abs(other.rms_m - best.rms_m) <= RMS_ABS_MARGIN_M
-                          or abs(other.rms_m - best.rms_m) <= RMS_REL_MARGIN * max(best.rms_m, other.rms_m))
-            if not comparable:
+            if set(other.paired) == set(best.paired):
+                part = f"{other.name} found the same {n_o}"
+            else:
+                missed = sorted(set(best.paired) - set(other.paired))
+                extra = sorted(set(other.paired) - set(best.paired))
+                part = f"{other.name} paired {n_o} of {n_surveyed}"
+                if missed:
+                    part += f" (missed {', '.join(missed)})"
+                if extra:
+                    part += f" (but also {', '.join(extra)})"
+            part += f", residual RMS {1000 * other.rms_m:.1f} mm"
+            if n_o < n_best:
+                part += "; fewer pairings"
+                runner_decided = True
+            elif other.report.get("status") != "ok" and best.report.get("status") == "ok":
+                part += "; pairing ambiguous"
+                runner_decided = True
+            elif not rms_tied(rms(other), rms(best)) and rms(other) > rms(best):
                 part += "; larger residuals"
-                decided = decided or other is ranked[1]
+                runner_decided = True
             elif faster(best.seconds, other.seconds):
-                part += f"; residuals comparable, {ratio:.1f}x slower"
-                decided = decided or other is ranked[1]
+                part += f"; residuals comparable, {other.seconds / best.seconds:.1f}x slower"
+                runner_decided = True
             else:
                 part += "; residuals and speed comparable"
+                runner_decided = False
+        if other is others[0]:
+            decided = runner_decided
+            if faster(best.seconds, other.seconds):
+                lines[0] += f", {other.seconds / best.seconds:.1f}x faster than {other.name}"
         lines.append(part)
-        if other is ranked[1] and faster(best.seconds, other.seconds):
-            lines[0] += f", {ratio:.1f}x faster than {other.name}"
     unpaired_by_all = sorted(set(n for r in results for n in r.report.get("unpaired_surveyed", []))
                              - set(n for r in results for n in r.paired))
     if unpaired_by_all:
         lines.append(f"no detector paired {', '.join(unpaired_by_all)} (not visible in enough images, or "
                      "not detected)")
     if n_best < 4:
-        insufficient = True
-        lines.append(f"insufficient evidence: only {n_best} surveyed points paired; residuals of a "
+        notes.append(f"insufficient evidence: only {n_best} surveyed points paired; residuals of a "
                      "7-parameter fit on so few points say little")
-    if len(ranked) == 1:
-        insufficient = True
-        lines.append("insufficient evidence: only one detector was compared")
+    if not others:
+        notes.append("insufficient evidence: only one detector was compared")
     elif not decided:
-        insufficient = True
-        lines.append(f"insufficient evidence: {best.name} and {ranked[1].name} do equally well on this site")
-    return Recommendation(best.name, lines, insufficient)
+        notes.append(f"insufficient evidence: {best.name} and {others[0].name} do equally well on this site")
+    return Recommendation(best.name, lines + notes, bool(notes))
 
 
 def compare_site(inputs: SiteInputs, names: Sequence[str], work_dir: str | Path,

@@ -284,6 +284,10 @@ def test_site_recommendation_rules():
     assert rec.reasons[0] == ("classical: all 9 surveyed markers paired, residual RMS 4.0 mm, "
                               "6.0x faster than hma")
     assert rec.reasons[1].startswith("hma found the same 9")
+    # residuals within the margin count as equal even when the slower one is a little better
+    rec = recommend_site([_fake("hma", all9, 3.9, 6.0), _fake("classical", all9, 4.2, 1.0)], 9)
+    assert rec.choice == "classical" and not rec.insufficient
+    assert rec.reasons[1] == "hma found the same 9, residual RMS 3.9 mm; residuals comparable, 6.0x slower"
     # same pairings, clearly smaller residuals win over speed
     rec = recommend_site([_fake("a", all9, 4.0, 1.0), _fake("b", all9, 2.0, 6.0)], 9)
     assert rec.choice == "b" and "larger residuals" in rec.reasons[1]
@@ -340,3 +344,29 @@ def test_bad_inputs_are_one_line_errors(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "DETECTOR.KEY=VALUE" in err[0]
     assert not (tmp_path / "o").exists()  # nothing half-written
+
+
+def _fake_dataset(name, f1, err_px, seconds, n=200):
+    from cpdetect.compare import DatasetDetectorResult
+
+    summary = {"markers": n, "f1": f1, "recall": f1, "precision": f1, "centre_error_px": {"median": err_px},
+               "seconds_per_megapixel": seconds / 10.0, "seconds": seconds}
+    return DatasetDetectorResult(name, summary, [], None, {}, {})
+
+
+def test_dataset_recommendation_rules():
+    from cpdetect.compare import recommend_dataset
+
+    # F1 apart by more than two standard errors (about 0.04 at F1 0.9 on 200 markers) decides
+    rec = recommend_dataset([_fake_dataset("a", 0.80, 0.3, 1.0), _fake_dataset("b", 0.90, 0.5, 9.0)])
+    assert rec.choice == "b" and not rec.insufficient and "more than two standard errors" in rec.reasons[1]
+    # F1 tied: the more precise centres win, then speed
+    rec = recommend_dataset([_fake_dataset("a", 0.90, 0.6, 1.0), _fake_dataset("b", 0.91, 0.3, 9.0)])
+    assert rec.choice == "b" and "centre error larger" in rec.reasons[1]
+    rec = recommend_dataset([_fake_dataset("a", 0.90, 0.30, 1.0), _fake_dataset("b", 0.91, 0.31, 9.0)])
+    assert rec.choice == "a" and rec.reasons[0].endswith("9.0x faster than b") and not rec.insufficient
+    # nothing separates them, or too few markers
+    rec = recommend_dataset([_fake_dataset("a", 0.90, 0.30, 1.0), _fake_dataset("b", 0.91, 0.31, 1.2)])
+    assert rec.insufficient and "not separated" in rec.reasons[-1]
+    rec = recommend_dataset([_fake_dataset("a", 0.5, 0.3, 1.0, n=10), _fake_dataset("b", 0.9, 0.3, 1.0, n=10)])
+    assert rec.choice == "b" and rec.insufficient and any("only 10 true markers" in r for r in rec.reasons)
