@@ -32,7 +32,6 @@ import hashlib
 import json
 import logging
 import math
-import os
 import re
 import time
 from dataclasses import asdict, dataclass, field
@@ -48,7 +47,7 @@ log = logging.getLogger(__name__)
 
 STAGE_FORMAT = "cpdetect.georef-stage/1"
 # bumped whenever what a stage computes changes, so that stale stage files are recomputed
-ALGORITHM_VERSION = 5
+ALGORITHM_VERSION = 8
 REPORT_FORMAT = "cpdetect.georef-report/1"
 DETECTIONS_FORMAT = "cpdetect.detections/1"
 MODES = ("auto", "cloud", "ray", "triangulate")
@@ -471,7 +470,8 @@ def _localize_ray(scene, per_image, settings, mesh_rc) -> dict:
 
 
 def _localize_triangulate(scene, per_image, settings) -> dict:
-    """Intersect detection rays of image pairs with nearby centres; cluster consistent midpoints."""
+    """Intersect detection rays of image pairs with nearby centres (each image with its 12 nearest);
+    cluster the midpoints of pairs that nearly meet, at a depth consistent with both apparent sizes."""
     from geometry.clustering import cluster_centres
     from geometry.raycast import detection_rays
 
@@ -493,9 +493,16 @@ def _localize_triangulate(scene, per_image, settings) -> dict:
     V = np.array([r[2] for r in rays])
     rpx = np.array([r[3] for r in rays])
     fx = np.array([r[4] for r in rays])
-    mids, rad = [], []
+    # pairs of rays from different images among each image's nearest neighbours (camera centres)
+    from scipy.spatial import cKDTree
+
+    k_nn = min(len(names), 13)
+    _, nn = cKDTree(centers).query(centers, k=k_nn)
+    near = np.zeros((len(names), len(names)), bool)
+    near[np.repeat(np.arange(len(names)), k_nn), np.asarray(nn).reshape(-1)] = True
+    near |= near.T
     a_idx, b_idx = np.triu_indices(len(rays), 1)
-    keep = img[a_idx] != img[b_idx]
+    keep = (img[a_idx] != img[b_idx]) & near[img[a_idx], img[b_idx]]
     a_idx, b_idx = a_idx[keep], b_idx[keep]
     # closest points of the two rays
     w0 = O[a_idx] - O[b_idx]
@@ -513,17 +520,19 @@ def _localize_triangulate(scene, per_image, settings) -> dict:
     ra = rpx[a_idx] * s / fx[a_idx]
     rb = rpx[b_idx] * t / fx[b_idx]
     r_est = 0.5 * (ra + rb)
-    ok &= (gap < 0.5 * r_est) & (np.abs(ra - rb) < 0.5 * r_est)
+    # apparent sizes shrink with obliquity (equal-area radius ~ sqrt(cos)): allow a factor 2
+    ok &= (gap < 0.5 * r_est) & (np.maximum(ra, rb) < 2.0 * np.minimum(ra, rb))
     if not ok.any():
         raise InputError("no two detections in different images agree on a 3D position")
     mids = 0.5 * (pa[ok] + pb[ok])
     radius = float(np.median(r_est[ok]))
-    centres, labels = cluster_centres(mids, eps=0.5 * radius, min_samples=3)
+    # a marker detected in two images only gives one pair: every midpoint may found a candidate (false
+    # ones are dropped after refinement by the views and detection-fraction tests)
+    centres, labels = cluster_centres(mids, eps=0.5 * radius, min_samples=1)
     r_ok = r_est[ok]
     cands = [{"center_model": np.median(mids[labels == k], axis=0).tolist(), "support": int((labels == k).sum()),
               "score": 1.0, "radius_model": float(np.median(r_ok[labels == k])), "normal_model": None}
              for k in range(len(centres))]
-    del centers
     return {"mode": "triangulate", "radius_model": radius, "n_pairs": int(ok.sum()), "candidates": cands}
 
 

@@ -115,3 +115,21 @@ def test_bad_inputs_are_one_line_errors_naming_the_file(site, capsys, tmp_path):
                str(bad), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and str(bad) in err[0] and "cpdetect.detections/1" in err[0]
+
+
+def test_without_mesh_or_cloud_markers_are_triangulated_from_detection_pairs(site):
+    root, truth = site
+    s = root / "site"
+    out = root / "out_tri"
+    rc = main(["-q", "georef", "--reconstruction", str(s / "sparse"), "--images", str(s / "images"),
+               "--gcps", str(s / "gcps.csv"), "--crs", "EPSG:25832", "--detections", str(root / "dets.json"),
+               "--out", str(out)])
+    report = json.loads((out / "report.json").read_text())
+    assert rc == 0 and report["mode"] == "triangulate"
+    true_c = {m["name"]: np.array(m["center_model"]) for m in truth["markers"]}
+    paired = [m for m in report["markers"] if m["surveyed_name"]]
+    assert len(paired) == 6  # GCP02 is detected in only two images here: one ray pair suffices
+    for m in paired:
+        d = {n: np.linalg.norm(c - m["model_point"]) for n, c in true_c.items()}
+        assert min(d, key=d.get) == m["surveyed_name"]
+    assert 0.001 < report["rms_m"] < 0.012
