@@ -305,7 +305,8 @@ def _fmt(v: Any, spec: str = ".3f", unit: str = "") -> str:
 def recommend_dataset(results: Sequence[DatasetDetectorResult]) -> Recommendation:
     """Instance F1 first: detectors within two standard errors of the best F1 count as tied; among
     them, the lowest median centre error (others within 20 % or 0.05 px count as tied); among those,
-    the fastest (:func:`faster`, on the whole run). The evidence is insufficient with fewer than 30
+    the fastest when it is clearly faster than each other (:func:`faster`, on the whole run), else
+    the best F1. The evidence is insufficient with fewer than 30
     true markers, one detector only, or when nothing separates the chosen detector from the runner-up."""
     if not results:
         return Recommendation(None, ["no detector was compared"], True)
@@ -340,7 +341,9 @@ def recommend_dataset(results: Sequence[DatasetDetectorResult]) -> Recommendatio
     tied = [r for r in results if top - f1(r) <= margin]
     emin = min(tied, key=err)
     tied = [r for r in tied if err_tied(r, emin)]
-    best = min(tied, key=lambda r: (secs(r), -f1(r)))
+    tied.sort(key=lambda r: (-f1(r), err(r)))
+    quick = min(tied, key=secs)
+    best = quick if all(faster(secs(quick), secs(r)) for r in tied if r is not quick) else tied[0]
     others = sorted((r for r in results if r is not best), key=lambda r: (-f1(r), err(r), spmp(r)))
     lines = [describe(best)]
     notes = []
@@ -656,8 +659,9 @@ def recommend_site(results: Sequence[SiteDetectorResult], n_surveyed: int) -> Re
     """Completeness of the pairings first, then residual RMS, then speed (see the module docstring).
 
     Among the detectors with the most pairings (a clean ``ok`` status preferred over ``ambiguous``),
-    those whose RMS is within 20 % or 1 mm of the lowest count as tied, and the fastest of them is
-    chosen (:func:`faster`: under 80 % of the other's time and at least half a second less). The
+    those whose RMS is within 20 % or 1 mm of the lowest count as tied; the fastest of them is chosen
+    when it is clearly faster than each other (:func:`faster`: under 80 % of the other's time and at
+    least half a second less), else the lowest RMS. The
     evidence is insufficient when no detector georeferenced the site, when the choice pairs fewer than
     4 surveyed points (residuals of a 7-parameter fit on 3 points say little), when only one detector
     ran, or when nothing separates the choice from the runner-up.
@@ -682,7 +686,9 @@ def recommend_site(results: Sequence[SiteDetectorResult], n_surveyed: int) -> Re
     top = [r for r in usable if len(r.paired) == n_best]
     top = [r for r in top if r.report.get("status") == "ok"] or top
     rmin = min(rms(r) for r in top)
-    best = min((r for r in top if rms_tied(rms(r), rmin)), key=lambda r: (r.seconds, rms(r)))
+    tied = sorted((r for r in top if rms_tied(rms(r), rmin)), key=rms)
+    quick = min(tied, key=lambda r: r.seconds)
+    best = quick if all(faster(quick.seconds, r.seconds) for r in tied if r is not quick) else tied[0]
     others = sorted((r for r in results if r is not best),
                     key=lambda r: (-len(r.paired), r.report.get("status") != "ok", rms(r), r.seconds))
     what = (f"all {n_surveyed} surveyed markers paired" if n_best == n_surveyed
