@@ -375,3 +375,29 @@ def test_augmented_crops_keep_labels_aligned():
         if inside.sum() > 50:  # marker pixels are dark or bright, never the mid-grey background
             v = x[inside]
             assert np.mean((v < 0.25) | (v > 0.75)) > 0.7
+
+
+def test_cli_train_resume_export_and_detect(tmp_path, capsys):
+    from cpdetect.cli import main
+
+    data = tmp_path / "data"
+    assert main(["-q", "synth", "images", "--out", str(data), "--n", "4", "--seed", "3", "--size", "160x128",
+                 "--empty-prob", "0"]) == 0
+    out = tmp_path / "model"
+    args = ["-q", "train", "--data", str(data), "--out", str(out), "--model", "test_micro", "--iters-per-epoch",
+            "2", "--batch", "2", "--crop", "64", "--threads", "1", "--val-frac", "0.25"]
+    assert main(args + ["--epochs", "1"]) == 0
+    assert (out / "model.pt").exists() and (out / "checkpoint.pt").exists()
+    assert main(args + ["--epochs", "2", "--resume"]) == 0
+    assert torch.load(out / "checkpoint.pt", weights_only=False)["iteration"] == 4
+    assert main(["-q", "export-onnx", str(out), str(out / "model.onnx")]) == 0
+    from cpdetect import get_detector
+
+    det = get_detector("hma", model_dir=str(out), backend="opencv")
+    res = det.detect(np.full((64, 96), 100, np.uint8))
+    assert res.probability.shape == (64, 96)
+    capsys.readouterr()
+    assert main(["train", "--data", str(tmp_path / "missing"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "missing" in err[0]
+    assert main(["train", "--data", str(data), "--out", str(out), "--crop", "100"]) == 2
