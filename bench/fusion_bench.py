@@ -4,7 +4,9 @@ Scene: a wavy terrain heightfield of P points (100 x 100 model units) with norma
 mesh; N nadir/oblique cameras (4000 x 3000 pixels, f = 3000) on a grid 40 units above it; per image a
 probability map of 384 x 288 with a few blobs. Times: the mesh depth maps (Open3D ray casting, longest
 side 480), the fusion itself (geometry.fusion.fuse_scores, numpy, one image at a time), and as a peer
-for the projection step alone, OpenCV's cv2.projectPoints on the same points.
+for the projection step alone, OpenCV's cv2.projectPoints on the same points. Also the sparse path
+(geometry.fusion.fuse_scores_sparse: marked pixels lifted to 3D through the depth maps, only the cloud
+points near them fused), its time and its agreement with the full fusion.
 
 Usage: .venv/bin/python bench/fusion_bench.py [--points 2000000] [--images 100]
 Writes bench/results/fusion_bench.json (wall-clock and process CPU seconds: on a shared machine
@@ -21,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from geometry.camera import Camera
-from geometry.fusion import FusionView, fuse_scores
+from geometry.fusion import FusionView, fuse_scores, fuse_scores_sparse
 from geometry.raycast import make_raycasting_scene
 from geometry.transforms import Rigid3
 from geometry.visibility import mesh_depth_map
@@ -100,6 +102,18 @@ def main() -> None:
     res = fuse_scores(P, views, N)
     t_fuse, c_fuse = time.perf_counter() - t0, time.process_time() - c0
 
+    # sparse path: only points near marked pixels (lifted with the depth maps) are fused
+    from scipy.spatial import cKDTree
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    tree = cKDTree(P)
+    t_tree = time.perf_counter() - t0
+    sp = fuse_scores_sparse(P, views, N, tree=tree)
+    t_sparse, c_sparse = time.perf_counter() - t0, time.process_time() - c0
+    marked = res.score > 0
+    agree = float(np.max(np.abs(sp.score[marked] - res.score[marked]))) if marked.any() else 0.0
+    missed = int((marked & (sp.score == 0)).sum())
+
     # peer for the projection step: cv2.projectPoints on all points, first 10 images
     import cv2
 
@@ -125,6 +139,10 @@ def main() -> None:
         "seconds_fusion_per_image": round(t_fuse / len(poses), 4),
         "cpu_seconds_depth_maps": round(c_depth, 2), "cpu_seconds_fusion": round(c_fuse, 2),
         "visible_point_views": n_obs,
+        "sparse": {"seconds": round(t_sparse, 2), "cpu_seconds": round(c_sparse, 2),
+                   "seconds_kdtree": round(t_tree, 2), "points_fused": int((sp.weight > 0).sum()),
+                   "points_with_score_above_0_exact": int(marked.sum()),
+                   "of_those_missed_by_sparse": missed, "max_score_difference": agree},
         "points_seen_by_any_image": int((res.n_views > 0).sum()),
         "projection_seconds_per_image": {"numpy Camera.project (ours)": round(t_np, 4),
                                          "cv2.projectPoints (peer)": round(t_cv, 4)},

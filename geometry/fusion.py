@@ -28,7 +28,7 @@ viewing frustum, so the cost per image follows what it sees, not the size of the
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Iterable, Optional
+from typing import Iterable, Optional, Sequence
 
 import numpy as np
 
@@ -188,3 +188,77 @@ def fuse_scores(points_in_world: np.ndarray, views: Iterable[FusionView],
     num, den, n_views = num[inv], den[inv], n_views[inv]
     score = np.divide(num, den, out=np.zeros_like(num), where=den > 0)
     return FusionResult(np.clip(score, 0.0, 1.0), den, n_views)
+
+
+def candidate_points(points_in_world: np.ndarray, views: Sequence[FusionView], p_min: float = 0.01,
+                     margin: float = 2.0, tree=None) -> np.ndarray:
+    """Indices of the cloud points that can get a non-zero fused score, found from the other side:
+    every probability-map pixel above ``p_min`` is lifted to 3D with the view's depth map, and the
+    cloud points within ``margin`` pixel footprints (plus the depth tolerance) of it are collected
+    (scipy cKDTree). Cost follows the marked pixels, not the cloud. Every view needs a depth map.
+
+    Fusing only these points (:func:`fuse_scores_sparse`) gives the same scores as fusing the whole
+    cloud wherever a point's score is above zero, up to points the margin misses at depth
+    discontinuities; all other points have score 0.
+    """
+    from scipy.spatial import cKDTree
+
+    P = np.asarray(points_in_world, float).reshape(-1, 3)
+    tree = cKDTree(P) if tree is None else tree
+    found = []
+    for view in views:
+        if view.depth_map is None:
+            raise ValueError("candidate_points needs a depth map for every view")
+        cam, pose = view.camera, view.cam_from_world
+        prob = np.asarray(view.probability)
+        h, w = prob.shape
+        ys, xs = np.nonzero(prob > p_min)
+        if len(xs) == 0:
+            continue
+        sx, sy = cam.width / w, cam.height / h
+        uv = np.column_stack([(xs + 0.5) * sx - 0.5, (ys + 0.5) * sy - 0.5])
+        d = view.depth_map.lookup(uv)
+        ok = np.isfinite(d)
+        if not ok.any():
+            continue
+        rays = cam.pixel_to_ray(uv[ok])
+        X_cam = rays * (d[ok] / rays[:, 2])[:, None]
+        X = pose.inverse()(X_cam)
+        # pixel footprint of a probability-map cell (and of a depth-map cell) at that depth
+        cell = max(sx, sy, 1.0 / view.depth_map.scale)
+        r = margin * cell * d[ok] / min(cam.fx, cam.fy) + 0.02 * d[ok]
+        for rr, group in _radius_groups(r):
+            hits = tree.query_ball_point(X[group], rr, return_sorted=False)
+            nonempty = [np.asarray(hh, np.int64) for hh in hits if len(hh)]
+            if nonempty:
+                found.append(np.unique(np.concatenate(nonempty)))
+    if not found:
+        return np.zeros(0, np.int64)
+    return np.unique(np.concatenate(found))
+
+
+def _radius_groups(r: np.ndarray, n_groups: int = 4):
+    """Split query radii into a few groups, each queried with its largest radius."""
+    order = np.argsort(r)
+    for g in np.array_split(order, min(n_groups, len(order))):
+        if len(g):
+            yield float(r[g].max()), g
+
+
+def fuse_scores_sparse(points_in_world: np.ndarray, views: Sequence[FusionView],
+                       normals_in_world: Optional[np.ndarray] = None, min_cos: float = 0.2,
+                       rel_tol: float = 0.02, abs_tol=0.0, p_min: float = 0.01, tree=None) -> FusionResult:
+    """:func:`fuse_scores` restricted to :func:`candidate_points` (every view needs a depth map);
+    points that are not candidates get score 0, weight 0 and n_views 0."""
+    P = np.asarray(points_in_world, float).reshape(-1, 3)
+    views = list(views)
+    cand = candidate_points(P, views, p_min=p_min, tree=tree)
+    score = np.zeros(len(P))
+    weight = np.zeros(len(P))
+    n_views = np.zeros(len(P), np.int32)
+    if len(cand):
+        N = None if normals_in_world is None else np.asarray(normals_in_world, float).reshape(-1, 3)[cand]
+        tol = np.broadcast_to(np.asarray(abs_tol, float), (len(P),))[cand]
+        sub = fuse_scores(P[cand], views, N, min_cos=min_cos, rel_tol=rel_tol, abs_tol=tol)
+        score[cand], weight[cand], n_views[cand] = sub.score, sub.weight, sub.n_views
+    return FusionResult(score, weight, n_views)

@@ -106,6 +106,16 @@ def test_colorize_and_cluster_recovers_markers_and_ignores_occluded_points():
     assert hidden.sum() > 500 and np.linalg.norm(ground[hidden, :2] - markers[0, :2], axis=1).min() < 0.02
     assert res.n_views[hidden].max() == 0 and res.score[hidden].max() == 0.0
 
+    # the sparse path (candidates lifted from the marked pixels with the depth maps) agrees
+    from geometry.fusion import fuse_scores_sparse
+
+    sparse = fuse_scores_sparse(ground, views, normals)
+    marked = res.score > 0
+    assert marked.sum() > 200
+    np.testing.assert_allclose(sparse.score[marked], res.score[marked], rtol=1e-9)
+    assert not (sparse.score[~marked] > 0).any()
+    assert (sparse.weight == 0).sum() > 0.8 * len(ground)  # most of the cloud was never touched
+
     spacing = point_spacing(ground, rng=np.random.default_rng(0))
     assert 0.02 < spacing < 0.035
     params = dbscan_params(spacing, marker_size=0.3)
