@@ -24,13 +24,15 @@ def register(sub) -> None:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="detector setting (repeatable)")
     p.add_argument("--mode", default="auto", choices=["auto", "cloud", "ray", "triangulate"],
-                   help="how markers are first placed in 3D (default: cloud if --cloud and the detector "
-                        "gives probability maps, else ray if --mesh, else triangulate)")
+                   help="how markers are first placed in 3D: cloud colorization + DBSCAN, ray casting of "
+                        "detections onto the mesh, or triangulation of detection pairs (default auto: cloud "
+                        "when --cloud is given and the detector gives probability maps, plus ray when --mesh "
+                        "is given, else triangulate)")
     p.add_argument("--adjust", action="store_true", help="also bundle-adjust poses (with priors) and markers")
     p.add_argument("--loss", default="huber", choices=["huber", "cauchy", "soft_l1", "linear"])
     p.add_argument("--noise", type=float, default=0.02,
                    help="per-axis survey + detection noise assumed by the registration, metres (default 0.02)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.set_defaults(func=run)
 
