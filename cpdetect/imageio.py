@@ -16,6 +16,7 @@ from .errors import InputError
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 MAX_PIXELS = 400_000_000  # 20000 x 20000; larger is refused before decoding
+_TAIL = 1024  # bytes read at the end of a file: JPEG end-of-image marker, PNG IEND chunk (after a little junk)
 
 _REDUCED_GRAY = {1: "IMREAD_GRAYSCALE", 2: "IMREAD_REDUCED_GRAYSCALE_2", 4: "IMREAD_REDUCED_GRAYSCALE_4",
                  8: "IMREAD_REDUCED_GRAYSCALE_8"}
@@ -80,8 +81,8 @@ def probe_image(path: str | os.PathLike) -> ImageInfo:
             head = fh.read(65536)
             tail = b""
             if size >= 2:
-                fh.seek(max(0, size - 2))
-                tail = fh.read(2)
+                fh.seek(max(0, size - _TAIL))
+                tail = fh.read(_TAIL)
     except OSError as exc:
         raise InputError(f"cannot read image: {exc.strerror or exc}", p) from None
     if size == 0:
@@ -91,7 +92,7 @@ def probe_image(path: str | os.PathLike) -> ImageInfo:
         raise InputError("not an image (unrecognised format)", p)
     width = height = None
     if fmt == "jpeg":
-        if tail != b"\xff\xd9":
+        if tail[-2:] != b"\xff\xd9":
             raise InputError("truncated JPEG (no end-of-image marker)", p)
         wh = _jpeg_size(head)
         if wh is None:
@@ -105,6 +106,8 @@ def probe_image(path: str | os.PathLike) -> ImageInfo:
             raise InputError("truncated PNG", p)
         width = int.from_bytes(head[16:20], "big")
         height = int.from_bytes(head[20:24], "big")
+        if b"IEND" not in tail and 0 < width * height <= MAX_PIXELS:
+            raise InputError("truncated PNG (no IEND chunk at the end)", p)
     if width is not None and height is not None:
         if width <= 0 or height <= 0:
             raise InputError(f"image has an invalid size {width}x{height}", p)
@@ -159,6 +162,8 @@ def read_image(path: str | os.PathLike, gray: bool = False, reduce: int = 1) -> 
         wh = (int.from_bytes(data[16:20].tobytes(), "big"), int.from_bytes(data[20:24].tobytes(), "big"))
     if wh is not None and wh[0] * wh[1] > MAX_PIXELS:
         raise InputError(f"image too large ({wh[0]}x{wh[1]} > {MAX_PIXELS // 1_000_000} MP)", p)
+    if info_fmt == "png" and b"IEND" not in data[-_TAIL:].tobytes():
+        raise InputError("truncated PNG (no IEND chunk at the end)", p)
     if info_fmt == "jpeg":
         flag_name = (_REDUCED_GRAY if gray else _REDUCED_COLOR)[reduce]
         img = cv2.imdecode(data, getattr(cv2, flag_name))

@@ -152,5 +152,6 @@ def run(args) -> int:
            if result.world_from_model is not None else f"{result.status}")
     if result.reason:
         msg += f" ({result.reason})"
-    log.info("%s -> %s", msg, args.out)
+    # a failed or ambiguous registration is said even with --quiet: the exit code alone does not say why
+    (log.info if result.status == "ok" else log.warning)("%s -> %s", msg, args.out)
     return 0 if result.status == "ok" else 3
