@@ -108,6 +108,25 @@ def test_site_comparison_shows_the_missed_marker_in_summary_and_recommendation(s
     assert json.loads((out / "runs" / "oracle_drop" / "report.json").read_text())["n_paired"] == 8
 
 
+def test_a_detector_that_finds_nothing_is_reported_as_failed_not_an_error(site):
+    from cpdetect.compare import compare_site, find_site
+
+    root, truth, out, rc = site
+    table = detector_registry._REGISTERED["oracle"]().table
+    detector_registry.register_detector("nothing", lambda: _Oracle(table, [m["name"] for m in truth["markers"]]))
+    try:
+        cmp = compare_site(find_site(root / "site", use_cloud=False), ["nothing", "oracle"], out)
+    finally:
+        detector_registry._REGISTERED.pop("nothing", None)
+    nothing, oracle = cmp.detectors
+    assert nothing.report["status"] == "failed" and nothing.report["reason"] and not nothing.paired
+    assert sum(map(len, nothing.detections.values())) == 0
+    assert len(oracle.paired) == 9 and oracle.report["stages"]["ran"] == []  # resumed from the first run
+    assert cmp.recommendation.choice == "oracle" and not cmp.recommendation.insufficient
+    assert cmp.recommendation.reasons[1].startswith("nothing: failed (")
+    assert all(im["disagree"] == bool(im["found"]["oracle"]) for im in cmp.images)
+
+
 @needs_chromium
 def test_site_report_opens_in_a_browser_with_plots_gallery_and_summary_table(site, tmp_path):
     root, truth, out, rc = site
