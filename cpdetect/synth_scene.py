@@ -46,7 +46,8 @@ from .errors import InputError, UsageError
 from .markers import plane_homography, projected_radius
 from .synth_cameras import NetworkSettings, survey_camera, survey_network
 from .synth_render import Appearance, ImageEffects, SiteRenderer, apply_effects
-from .synth_site_geometry import PierMesh, PlacedMarker, PlacementRequest, build_pier, place_markers, sample_surface
+from .synth_site_geometry import (PierMesh, PlacedMarker, PlacementRequest, build_pier, place_markers,
+                                  sample_surface)
 
 log = logging.getLogger(__name__)
 
@@ -136,7 +137,8 @@ class Site:
         which leaves every projection unchanged)."""
         site_from_model = self.model_from_site.inverse()
         a = site_from_model.scale
-        return Rigid3(cam_from_site.R @ site_from_model.R, (cam_from_site.R @ site_from_model.t + cam_from_site.t) / a)
+        t = (cam_from_site.R @ site_from_model.t + cam_from_site.t) / a
+        return Rigid3(cam_from_site.R @ site_from_model.R, t)
 
     def scene(self) -> Scene:
         """The true cameras and poses as a :class:`Scene` in the model frame."""
@@ -255,26 +257,22 @@ def build_site(settings: SiteSettings) -> Site:
         placed = place_markers(mesh, request, rng["markers"], view_count, glimpse_count=glimpse_count)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    placed = _name_markers(placed)
+    placed = _name_markers(placed, rng["markers"])
     renderer = SiteRenderer(mesh, placed, appearance)
     return Site(settings, mesh, placed, camera, poses, model_from_site, world_from_site, appearance, renderer,
                 used)
 
 
-def _name_markers(placed: list[PlacedMarker]) -> list[PlacedMarker]:
-    """Surveyed markers GCP01.. (in random order of roles, so names betray nothing); printed but
-    unsurveyed ones U01.."""
+def _name_markers(placed: list[PlacedMarker], rng: np.random.Generator) -> list[PlacedMarker]:
+    """Name surveyed markers GCP01.. and printed, unsurveyed ones U01.., numbered in a random order so
+    that a name betrays nothing of the marker's role; returned sorted by name."""
     from dataclasses import replace
 
-    out, g, u = [], 0, 0
-    for m in placed:
-        if m.surveyed:
-            g += 1
-            out.append(replace(m, name=f"GCP{g:02d}"))
-        else:
-            u += 1
-            out.append(replace(m, name=f"U{u:02d}"))
-    return out
+    surveyed = [m for m in placed if m.surveyed]
+    unsurveyed = [m for m in placed if not m.surveyed]
+    out = [replace(surveyed[i], name=f"GCP{k + 1:02d}") for k, i in enumerate(rng.permutation(len(surveyed)))]
+    out += [replace(unsurveyed[i], name=f"U{k + 1:02d}") for k, i in enumerate(rng.permutation(len(unsurveyed)))]
+    return sorted(out, key=lambda m: m.name)
 
 
 # ------------------------------------------------------------------------------------------- writing
