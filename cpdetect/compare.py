@@ -729,11 +729,9 @@ def recommend_site(results: Sequence[SiteDetectorResult], n_surveyed: int) -> Re
             else:
                 missed = sorted(set(best.paired) - set(other.paired))
                 extra = sorted(set(other.paired) - set(best.paired))
-                part = f"{other.name} paired {n_o} of {n_surveyed}"
-                if missed:
-                    part += f" (missed {', '.join(missed)})"
-                if extra:
-                    part += f" (but also {', '.join(extra)})"
+                notes_o = ([f"missed {', '.join(missed)}"] if missed else []) + \
+                    ([f"also paired {', '.join(extra)}"] if extra else [])
+                part = f"{other.name} paired {n_o} of {n_surveyed} ({'; '.join(notes_o)})"
             part += f", residual RMS {1000 * other.rms_m:.1f} mm"
             if n_o < n_best:
                 part += "; fewer pairings"

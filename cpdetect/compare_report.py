@@ -2,9 +2,9 @@
 PNG plots, no network), ``summary.json`` (format ``cpdetect.compare/1``, for scripts and CI) and
 ``summary.md``, all atomically. Layout: docs/formats.md, "Comparison report".
 
-The site report's review gallery shows, for each marker and detector, crops of the images with the
-detected centre drawn; a reviewer ticks wrong ones and downloads ``rejects.json``
-(:func:`cpdetect.rejects.apply_rejects` drops them on a rerun).
+The site report's review gallery shows, for each detector and marker, crops of the images with the
+centre georef measured there drawn (see :func:`site_gallery`); a reviewer ticks wrong ones and downloads
+``rejects.json`` (:func:`cpdetect.rejects.apply_rejects` drops them on a rerun).
 """
 from __future__ import annotations
 
