@@ -85,4 +85,16 @@ def apply_rejects(detections_by_image: Mapping[str, Any], rejects: Sequence[Mapp
     return RejectsApplied(out, removed, unmatched)
 
 
-__all__ = ["apply_rejects", "RejectsApplied", "DEFAULT_TOL_PX"]
+def is_rejected(image: str, x: float, y: float, rejects: Sequence[Mapping[str, Any]],
+                tol_px: float = DEFAULT_TOL_PX) -> bool:
+    """True when a reject of ``image`` lies within ``tol_px`` of pixel (x, y).
+
+    For the observations georef adds after detection: its refine stage projects each marker into every
+    image that sees it and measures the centre there even without a detection, so a rerun must test
+    those observations too, or a rejected measurement comes back by projection.
+    """
+    return any(str(r["image"]) == image and math.hypot(float(x) - float(r["x"]), float(y) - float(r["y"])) <= tol_px
+               for r in rejects)
+
+
+__all__ = ["apply_rejects", "is_rejected", "RejectsApplied", "DEFAULT_TOL_PX"]

@@ -27,7 +27,7 @@ from cpdetect.evaluate import PixelCounts
 from cpdetect.html_report import read_rejects
 from cpdetect.imageio import read_image
 from cpdetect.plots import pixel_pr
-from cpdetect.rejects import apply_rejects
+from cpdetect.rejects import apply_rejects, is_rejected
 from cpdetect.synth_scene import SiteSettings, write_site
 from cpdetect.types import DetectionResult, MarkerDetection
 
@@ -340,6 +340,8 @@ def test_apply_rejects_removes_only_detections_near_a_reject():
     assert out["width"] == 640 and [p["x"] for p in out["detections"]] == [12.9, 13.2, 100.0]
     with pytest.raises(ValueError, match="tol_px"):
         apply_rejects(dets, rejects, tol_px=0.0)
+    assert is_rejected("a.jpg", 12.9, 10.0, rejects) and not is_rejected("a.jpg", 13.2, 10.0, rejects)
+    assert not is_rejected("b.jpg", 10.0, 10.0, rejects)
 
 
 def test_bad_inputs_are_one_line_errors(tmp_path, capsys):
