@@ -232,10 +232,15 @@ def refine_symmetry(gray: np.ndarray, x0: float, y0: float, radius_px: float, wi
     nmax = int(np.abs(di).max())
     converged = False
     sn = np.inf
-    for _ in range(max_iter):
+    robust = np.ones(len(d))
+    n_robust = 0  # robust weights are updated a few times, then frozen (no oscillation)
+    for it in range(max_iter):
         lx, ly = px - patch.x0, py - patch.y0
         ix, iy = int(math.floor(lx)), int(math.floor(ly))
-        if ix - nmax < 3 or iy - nmax < 3 or ix + nmax > ww - 4 or iy + nmax > hh - 4:
+        # offsets whose pair falls off the patch (marker at the image border) are dropped
+        inside = ((ix - np.abs(di[:, 0]) >= 2) & (ix + np.abs(di[:, 0]) <= ww - 3)
+                  & (iy - np.abs(di[:, 1]) >= 2) & (iy + np.abs(di[:, 1]) <= hh - 3))
+        if np.sum(wt[inside]) < 0.4 * np.sum(wt):
             return _fail(x0, y0, "symmetry", "window leaves the image")
         # every sample p +- d shares the fractional part of p: shift the patch once by exact cubic
         # weights (cv2.remap quantises positions to 1/32 px, which would floor the accuracy)
@@ -243,11 +248,13 @@ def refine_symmetry(gray: np.ndarray, x0: float, y0: float, radius_px: float, wi
         gx = cv2.Sobel(sh, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
         gy = cv2.Sobel(sh, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
         stack = np.dstack([sh, gx, gy])
-        sp = stack[iy + di[:, 1], ix + di[:, 0]].astype(np.float64)
-        sm = stack[iy - di[:, 1], ix - di[:, 0]].astype(np.float64)
+        dd, dv = d[inside], di[inside]
+        sp = stack[iy + dv[:, 1], ix + dv[:, 0]].astype(np.float64)
+        sm = stack[iy - dv[:, 1], ix - dv[:, 0]].astype(np.float64)
         r = sp[:, 0] - sm[:, 0]
-        J = np.column_stack([sp[:, 1] - sm[:, 1], sp[:, 2] - sm[:, 2], -2 * d[:, 0], -2 * d[:, 1]])
-        JW = J * wt[:, None]
+        J = np.column_stack([sp[:, 1] - sm[:, 1], sp[:, 2] - sm[:, 2], -2 * dd[:, 0], -2 * dd[:, 1]])
+        wi = wt[inside] * robust[inside]
+        JW = J * wi[:, None]
         N = JW.T @ J
         try:
             delta = -np.linalg.solve(N, JW.T @ r)
@@ -260,21 +267,34 @@ def refine_symmetry(gray: np.ndarray, x0: float, y0: float, radius_px: float, wi
         px, py = px + step[0], py + step[1]
         if np.hypot(px - x0, py - y0) > max_shift:
             return _fail(x0, y0, "symmetry", "moved too far from the seed")
-        if sn < 1e-4:
+        if sn < 0.05 and n_robust < 3:
+            n_robust += 1
+            # near the answer: down-weight pairs that are not symmetric at all (an occluder, a
+            # neighbouring object) with Tukey weights on the residual after the gradient nuisance
+            res_all = np.zeros(len(d))
+            res_all[inside] = r + J @ delta - J[:, :2] @ delta[:2]
+            scale = 1.4826 * float(np.median(np.abs(res_all[inside]))) + 1e-3
+            c = 4.685 * max(scale, 1.0)
+            u = np.clip(np.abs(res_all) / c, 0, 1)
+            robust = (1 - u * u) ** 2
+        if sn < 1e-4 and n_robust >= 1:
             converged = True
             break
     if not converged and sn > 1e-2:
         return _fail(x0, y0, "symmetry", "did not converge")
+    wt_f = wt[inside] * robust[inside]
     # residual after solving for the gradient nuisance at the final position
-    g = np.linalg.lstsq(J[:, 2:] * np.sqrt(wt)[:, None], r * np.sqrt(wt), rcond=None)[0]
+    g = np.linalg.lstsq(J[:, 2:] * np.sqrt(wt_f)[:, None], r * np.sqrt(wt_f), rcond=None)[0]
     res = r - J[:, 2:] @ g
-    dof = max(float(np.sum(wt)) - 4.0, 1.0)
-    s2 = float(np.sum(wt * res * res) / dof)
+    dof = max(float(np.sum(wt_f)) - 4.0, 1.0)
+    s2 = float(np.sum(wt_f * res * res) / dof)
     try:
         cov = s2 * np.linalg.inv(N)[:2, :2]
         sigma = math.sqrt(max(0.5 * float(np.trace(cov)), 0.0))
     except np.linalg.LinAlgError:
         return _fail(x0, y0, "symmetry", "degenerate fit")
+    if np.sum(wt_f) < 0.5 * np.sum(wt):
+        return RefineResult(px, py, sigma, "symmetry", False, "most of the window is not point symmetric")
     # neighbouring samples are correlated by the smoothing (about 4*pi*ss^2 samples per independent one)
     sigma *= math.sqrt(max(1.0, 4.0 * math.pi * ss * ss))
     sigma = math.sqrt(sigma * sigma + 0.01 ** 2)
