@@ -266,7 +266,8 @@ def dataset_gallery(cmp: DatasetComparison, max_items: int = 48, crop_px: int = 
             cache.clear()
             cache[f] = _read(cmp.root / f)
         png = crop_with_marker(cache[f], dg["x"], dg["y"], dg["radius_px"], crop_px)
-        cap = f"{Path(f).name} · {dg['type']} r={dg['radius_px']:.0f}px · missed by {', '.join(dg['missed_by'])}"
+        cap = (f"{Path(f).name} · {dg['type']} r={dg['radius_px']:.0f}px (true centre) · missed by "
+               f"{', '.join(dg['missed_by'])}")
         items.append(GalleryItem(f"{f}#{dg['truth']}", f, dg["x"], dg["y"], png, cap))
     return items
 
