@@ -142,6 +142,7 @@ class _Verified:
     radius: float
     score: float
     outline: np.ndarray  # (k, 2) full-res polygon of the pattern
+    levels: tuple[float, float] = (0.0, 255.0)  # dark and bright grey levels
 
 
 def _wrap(a: np.ndarray | float) -> np.ndarray | float:
@@ -260,8 +261,14 @@ class _Verifier:
         dphi = np.abs(_wrap(np.angle(h2) - np.angle(h2[:, :1])))
         return ok & (q.min(1) >= q_min) & (dphi.max(1) <= math.radians(25))
 
-    def is_xcorner(self, x: float, y: float, r_start: float, q_min: float = 0.75) -> bool:
-        """Quick test: do four small rings around (x, y) show a strong, steady four-sector pattern?"""
+    def is_xcorner(self, x: float, y: float, r_start: float, levels: tuple[float, float] | None = None,
+                   q_min: float = 0.75) -> bool:
+        """Quick test: do four small rings around (x, y) show a strong, steady four-sector pattern?
+
+        With ``levels`` = (dark, bright) grey levels, the four sectors must also have those levels
+        (within 30 % of the contrast): the test then finds a *continuation of the same checker*
+        (checkerboard, tag bit cells) and not the corner where a marker's outline meets the
+        background (three regions, not point symmetric)."""
         radii = r_start * 1.1 ** np.arange(4)
         P = self.polar(x, y, radii, radii * (TWO_PI / self.N_THETA))
         if np.isnan(P).any():
@@ -271,7 +278,21 @@ class _Verifier:
         h2 = ((P - mean) * np.exp(-2j * self.theta)[None, :]).mean(1)
         q = math.sqrt(2) * np.abs(h2) / std
         phi = np.angle(h2)
-        return bool(q.min() >= q_min and np.abs(_wrap(phi - phi[0])).max() < math.radians(20))
+        if not (q.min() >= q_min and np.abs(_wrap(phi - phi[0])).max() < math.radians(20)):
+            return False
+        if levels is None:
+            return True
+        D, B = levels
+        C = B - D
+        ph = float(np.angle(h2.sum())) / 2.0  # profile ~ cos(2 (theta - ph)): bright around ph
+        for k in range(4):
+            centre = ph + k * np.pi / 2
+            m = np.abs(_wrap(self.theta - centre)) < math.radians(25)
+            level = float(P[:, m].mean())
+            expect = B if k % 2 == 0 else D
+            if abs(level - expect) > 0.3 * C:
+                return False
+        return True
 
     # -- step 3a: the four-sector core --------------------------------------------------------
     def core(self, x: float, y: float, r_start: float):
@@ -518,7 +539,7 @@ class _Verifier:
                      opp=core["opp"], **outer)
         self.last_features = feats
         score = marker_score(feats)
-        return _Verified(x, y, mtype, radius, score, outline)
+        return _Verified(x, y, mtype, radius, score, outline, (D, B))
 
     @staticmethod
     def _encloses(poly: np.ndarray, x: float, y: float) -> bool:
@@ -711,7 +732,7 @@ class ClassicalDetector:
             dn = np.hypot(cand_xy[:, 0] - v.x, cand_xy[:, 1] - v.y)
             near = np.nonzero((dn > 0.4 * v.radius) & (dn < 1.7 * v.radius)
                               & (cand_c >= 0.5 * c.contrast) & (cand_scale <= 0.25 * v.radius))[0]
-            if any(verifier.is_xcorner(cand_xy[j, 0], cand_xy[j, 1], max(1.5, 0.15 * v.radius))
+            if any(verifier.is_xcorner(cand_xy[j, 0], cand_xy[j, 1], max(1.5, 0.15 * v.radius), v.levels)
                    for j in near[np.argsort(-cand_c[near])][:8]):
                 rejected += 1
                 continue
@@ -720,7 +741,7 @@ class ClassicalDetector:
             if ref.ok:
                 if any(math.hypot(ref.x - a.x, ref.y - a.y) < 0.5 * a.radius for a, _ in accepted):
                     continue
-                v = _Verified(ref.x, ref.y, v.type, v.radius, v.score, v.outline + [ref.x - v.x, ref.y - v.y])
+                v = _Verified(ref.x, ref.y, v.type, v.radius, v.score, v.outline + [ref.x - v.x, ref.y - v.y], v.levels)
                 sigma = ref.sigma_px
             else:
                 sigma = max(0.5 * scale, 0.5)
