@@ -29,7 +29,7 @@ IGNORE = 255
 @dataclass(frozen=True)
 class AugmentConfig:
     crop: int = 256
-    marker_frac: float = 0.6
+    marker_frac: float = 0.8
     shift_frac: float = 0.35
     scale_min: float = 0.5
     scale_max: float = 2.0

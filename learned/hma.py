@@ -155,6 +155,15 @@ class HMAModel(nn.Module):
         self.register_buffer("_mean", torch.tensor(float(config.mean)), persistent=False)
         self.register_buffer("_std", torch.tensor(float(config.std)), persistent=False)
         init_weights(self)
+        # output layers keep PyTorch's default (small) init, as upstream's decoders: Kaiming fan_out on
+        # a 1- or K-channel 1x1 conv gives logits of std ~3-7 and a saturated attention at the start
+        for conv in self.output_layers():
+            conv.reset_parameters()
+
+    def output_layers(self) -> list[nn.Conv2d]:
+        """The final 1x1 convolutions of the semantic, auxiliary and attention heads."""
+        return [self.cls_head if isinstance(self.cls_head, nn.Conv2d) else self.cls_head[-1],
+                self.ocr.aux_head[-1], self.attn_head[-1]]
 
     # ------------------------------------------------------------------ trunk
     def _fwd(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
