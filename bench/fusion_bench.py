@@ -2,7 +2,7 @@
 
 Scene: a wavy terrain heightfield of P points (100 x 100 model units) with normals, and its triangle
 mesh; N nadir/oblique cameras (4000 x 3000 pixels, f = 3000) on a grid 40 units above it; per image a
-probability map of 384 x 288 with a few blobs. Times: the mesh depth maps (Open3D ray casting, longest
+probability map of 384 x 288 with 8 marker-sized blobs. Times: the mesh depth maps (Open3D ray casting, longest
 side 480), the fusion itself (geometry.fusion.fuse_scores, numpy, one image at a time), and as a peer
 for the projection step alone, OpenCV's cv2.projectPoints on the same points. Also the sparse path
 (geometry.fusion.fuse_scores_sparse: marked pixels lifted to 3D through the depth maps, only the cloud
@@ -71,12 +71,15 @@ def cameras(n: int, rng):
     return cam, out
 
 
-def prob_map(rng, h=288, w=384):
+def prob_map(rng, h=288, w=384, blobs=8):
+    """Marker-like blobs: a 0.3-unit marker seen from 40 units with f = 3000 is ~11 px in radius at
+    full resolution, 1-2 px in this 384 x 288 map; radii 1-3 px, and soft edges."""
     yy, xx = np.mgrid[0:h, 0:w]
     p = np.zeros((h, w), np.float32)
-    for _ in range(5):
-        cx, cy, r = rng.uniform(0, w), rng.uniform(0, h), rng.uniform(3, 10)
-        p = np.maximum(p, ((xx - cx) ** 2 + (yy - cy) ** 2 < r * r).astype(np.float32))
+    for _ in range(blobs):
+        cx, cy, r = rng.uniform(0, w), rng.uniform(0, h), rng.uniform(1, 3)
+        d = np.sqrt((xx - cx) ** 2 + (yy - cy) ** 2)
+        p = np.maximum(p, np.clip(r + 0.5 - d, 0, 1).astype(np.float32))
     return p
 
 

@@ -277,7 +277,7 @@ def stage_detect(store: StageStore, scene, image_paths: dict[str, Path], setting
     from .detector import get_detector
     from .imageio import read_image
 
-    det_key = [settings.detector, settings.detector_settings, settings.prob_max_side]
+    det_key = [settings.detector, settings.detector_settings, settings.prob_max_side, _detector_code_key(settings.detector)]
     detector = None
     per_image: dict[str, dict] = {}
     keys = []
@@ -343,6 +343,19 @@ def load_detections_json(path: Path, image_paths: dict[str, Path]) -> dict:
         raise InputError(f"no image of the reconstruction is named in it (e.g. {unknown[0]!r})", path)
     return {n: per_image.get(n, {"width": 0, "height": 0, "detections": [], "probability": None, "seconds": 0.0})
             for n in image_paths}
+
+
+def _detector_code_key(name: str) -> Any:
+    """Identity of the detector's code (its module file's size and time), so that cached detections
+    are recomputed when the detector changes."""
+    import inspect
+
+    from .detector import resolve_factory
+
+    try:
+        return _file_key(Path(inspect.getfile(resolve_factory(name))))
+    except Exception:  # unknown name (get_detector reports it) or a built-in without a file
+        return None
 
 
 def write_detections_json(path: Path, detector: str, per_image: dict) -> None:

@@ -198,8 +198,9 @@ def candidate_points(points_in_world: np.ndarray, views: Sequence[FusionView], p
     (scipy cKDTree). Cost follows the marked pixels, not the cloud. Every view needs a depth map.
 
     Fusing only these points (:func:`fuse_scores_sparse`) gives the same scores as fusing the whole
-    cloud wherever a point's score is above zero, up to points the margin misses at depth
-    discontinuities; all other points have score 0.
+    cloud, except for points the margin misses at the faint fringes of marked areas or at depth
+    discontinuities (bench/fusion_bench.py: 32 of 84 235 non-zero points missed, all scoring
+    <= 0.022); all other points have score 0.
     """
     from scipy.spatial import cKDTree
 
@@ -226,7 +227,7 @@ def candidate_points(points_in_world: np.ndarray, views: Sequence[FusionView], p
         X = pose.inverse()(X_cam)
         # pixel footprint of a probability-map cell (and of a depth-map cell) at that depth
         cell = max(sx, sy, 1.0 / view.depth_map.scale)
-        r = margin * cell * d[ok] / min(cam.fx, cam.fy) + 0.02 * d[ok]
+        r = margin * cell * d[ok] / min(cam.fx, cam.fy) + 0.01 * d[ok]
         for rr, group in _radius_groups(r):
             hits = tree.query_ball_point(X[group], rr, return_sorted=False)
             nonempty = [np.asarray(hh, np.int64) for hh in hits if len(hh)]
