@@ -12,14 +12,19 @@ same key, so an interrupted run resumes and a changed setting recomputes only fr
                   the mesh or a point z-buffer, :mod:`geometry.fusion`) and DBSCAN the marker points;
                   ``ray``: cast every detection onto the mesh and cluster the hits;
                   ``triangulate``: intersect detection rays of image pairs and cluster the midpoints
-                  (no mesh or cloud needed). ``auto`` picks the first one the inputs allow.
+                  (no mesh or cloud needed). ``auto``: cloud and ray candidates pooled when the
+                  inputs allow them, else triangulate.
 3. ``refine``     project every candidate into every image that sees it (depth test), drop views
                   where the marker is too small or too oblique, and refine the centre there
-                  (:func:`cpdetect.refine.refine_center`).
-4. ``triangulate`` robust multi-view triangulation of each marker (Huber/Cauchy), optionally a
-                  pose + marker bundle adjustment; per-marker reprojection RMS and covariance.
+                  (:func:`cpdetect.refine.refine_center`), seeded by a detection near the projection.
+4. ``triangulate`` robust multi-view triangulation of each candidate (Huber/Cauchy), merge of
+                  candidates on the same X-corner, a second refinement in every view from the
+                  triangulated point and a final triangulation; markers the detector found in too few
+                  of their views are dropped; optionally a pose + marker bundle adjustment;
+                  per-marker reprojection RMS, covariance and a quality score for ranking.
 5. ``register``   correspondence-free registration of the markers to the surveyed points
-                  (:func:`geometry.registration.register_points`) in a local metric frame.
+                  (:func:`geometry.registration.register_points`) in a local metric frame; when it
+                  fails with every marker, retried with the best-ranked ones.
 6. export         ``report.json``, ``gcp_list.txt`` (ODM), ``markers.xml`` (Metashape).
 
 Frames: the reconstruction's frame is the *model* frame; surveyed points are converted to a local
@@ -55,11 +60,11 @@ MODES = ("auto", "cloud", "ray", "triangulate")
 
 @dataclass(frozen=True)
 class GeorefSettings:
-    """Settings of a georef run (every field takes part in the stage keys).
+    """Settings of a georef run (each stage's key holds the fields it uses, see ``_STAGE_FIELDS``).
 
     detector / detector_settings: the detector and its settings (see :mod:`cpdetect.detector`).
     mode: "auto", "cloud", "ray" or "triangulate" (see the module docstring).
-    min_score: detections below this score are ignored by the ray and triangulate modes.
+    min_score: detections below this score are ignored (ray and triangulate modes, refinement seeds).
     cloud_threshold: fused score above which a cloud point is a marker point.
     prob_max_side: longest side (pixels) at which probability maps are kept for the cloud mode.
     depth_max_side: longest side of the per-image depth maps used for the visibility tests.
@@ -75,7 +80,7 @@ class GeorefSettings:
     min_views: markers with fewer inlier views are dropped.
     min_detected_fraction: markers the detector found in fewer of their usable views are dropped.
     adjust: run the pose + marker bundle adjustment after triangulation; pose priors
-        ``prior_rot_deg`` (degrees) and ``prior_pos`` (model units; None: 0.2 marker sizes).
+        ``prior_rot_deg`` (degrees) and ``prior_pos`` (model units; None: 0.4 marker radii).
     registration_noise_m: per-axis noise assumed by the registration (surveyed + detection), metres.
     seed: seed of every random choice (registration probes).
     """
