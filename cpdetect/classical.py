@@ -202,15 +202,15 @@ def _intersect(l1: np.ndarray, l2: np.ndarray) -> np.ndarray | None:
 
 
 SCORE_FEATURES = ("q", "agree", "logC", "spread", "e_rel", "frac", "widths_min", "mid_share", "core_ratio",
-                  "log_r", "opp", "inverted", "alternations", "outer_mixed")
+                  "log_r", "opp", "inverted", "alternations", "outer_mixed", "hull_fallback")
 # logistic model over SCORE_FEATURES (standardised by _SCORE_MEAN/_SCORE_STD), fitted on verified
 # candidates of generated images with *train*-split backgrounds (bench/fit_score.py); never on test.
 _SCORE_MEAN = np.array([0.85183, 0.86431, 4.2277, 0.15602, 0.034478, 0.98853, 0.77126, 0.18735, 0.95172, 2.7623,
-                        0.14777, 0.1338, 0.46536, 0.19573])
+                        0.14777, 0.1338, 0.46536, 0.19573, 0.0])
 _SCORE_STD = np.array([0.058894, 0.077247, 0.59908, 0.088661, 0.025071, 0.023449, 0.12561, 0.076036, 0.5165, 0.60778,
-                       0.11187, 0.15807, 0.22073, 0.09901])
+                       0.11187, 0.15807, 0.22073, 0.09901, 1.0])
 _SCORE_W = np.array([0.96329, 2.2681, -0.65906, -0.42501, -0.7962, 0.29851, 0.61288, -0.41217, 0.58725, 0.95542,
-                     -1.4198, -2.3292, -0.49793, -0.821])
+                     -1.4198, -2.3292, -0.49793, -0.821, 0.0])
 _SCORE_B = -8.6044
 
 
@@ -461,9 +461,11 @@ class _Verifier:
             return self._verify(x, y, r_start)
 
     def _verify(self, x: float, y: float, r_start: float) -> _Verified | str:
+        self.last_core_radius = None
         core = self.core(x, y, r_start)
         if isinstance(core, str):
             return core
+        self.last_core_radius = float(core["radii"][core["core_end"]])
         D, B, C = core["D"], core["B"], core["C"]
         sec, f = self.sector_of(core["bounds"], core["widths"])
         inner = (f > 0.12) & (f < 0.88)
@@ -522,7 +524,12 @@ class _Verifier:
         if not e_model < 0.1 * r0 + 0.2:
             return f"outline does not fit ({mtype})"
         outline = self.outline(mtype, x, y, core, pol_dark, e1, e2, ell)
+        hull_fallback = 0.0
         if outline is None or not self._encloses(outline, x, y):
+            # the model's corners are unreliable (strong tilt, occlusion): fall back to the hull of
+            # the boundary points and their reflection through the centre
+            # (a hull of the boundary points would do as an outline, but on generated train images
+            # it admitted more false markers than markers: rejected until the score model learns it)
             return "outline degenerate"
         area = 0.5 * abs(np.dot(outline[:, 0], np.roll(outline[:, 1], -1))
                          - np.dot(outline[:, 1], np.roll(outline[:, 0], -1)))
@@ -536,7 +543,7 @@ class _Verifier:
                      e_rel=e_model / r0, frac=float(ok.sum() / max(rays.sum(), 1)),
                      widths_min=float(core["widths"].min() / (0.5 * np.pi)), mid_share=core["mid_share"],
                      core_ratio=float(min(core["radii"][core["core_end"]] / radius, 3.0)), log_r=math.log(radius),
-                     opp=core["opp"], **outer)
+                     opp=core["opp"], hull_fallback=hull_fallback, **outer)
         self.last_features = feats
         score = marker_score(feats)
         return _Verified(x, y, mtype, radius, score, outline, (D, B))
