@@ -144,6 +144,7 @@ def detect_batch(jobs: Sequence[BatchJob], detector_name: str, settings: dict, o
     parts = out.with_name(out.name + ".parts")
     if out.is_dir():
         raise InputError("the output is a folder; give a file name such as detections.json", out)
+    created = [d for d in (parts, *parts.parents) if not d.exists()]  # deepest first
     try:
         parts.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -152,11 +153,12 @@ def detect_batch(jobs: Sequence[BatchJob], detector_name: str, settings: dict, o
         return _run_batch(jobs, detector_name, settings, out, parts, workers, skip_bad, progress, scheduler,
                           executor)
     except BaseException:
-        # keep finished parts for a rerun, but no empty parts folder
-        try:
-            parts.rmdir()
-        except OSError:
-            pass
+        # keep finished parts for a rerun, but no empty folder that this run made
+        for d in created:
+            try:
+                d.rmdir()
+            except OSError:
+                break
         raise
 
 
