@@ -141,3 +141,51 @@ def test_without_mesh_or_cloud_markers_are_triangulated_from_detection_pairs(sit
         d = {n: np.linalg.norm(c - m["model_point"]) for n, c in true_c.items()}
         assert min(d, key=d.get) == m["surveyed_name"]
     assert 0.001 < report["rms_m"] < 0.012
+
+
+def test_cloud_mode_colorizes_the_dense_cloud_with_probability_maps(site, monkeypatch):
+    """A stand-in detector that knows the truth (keyed by the image's pixels) gives detections and
+    probability maps (discs of the markers' apparent radius, quarter resolution); --mode cloud must
+    find every marker by colorizing fused.ply alone."""
+    import hashlib
+
+    from cpdetect import detector as registry
+    from cpdetect.imageio import read_image
+    from cpdetect.types import DetectionResult, MarkerDetection
+
+    root, truth = site
+    s = root / "site"
+    by_pixels = {}
+    for im in truth["images"]:
+        img = read_image(s / "images" / im["name"])
+        by_pixels[hashlib.sha1(img.tobytes()).hexdigest()] = im["markers"]
+
+    class TruthDetector:
+        name = "truth"
+
+        def detect(self, image):
+            markers = by_pixels[hashlib.sha1(image.tobytes()).hexdigest()]
+            h, w = image.shape[:2]
+            yy, xx = np.mgrid[0:h // 4, 0:w // 4]
+            prob = np.zeros((h // 4, w // 4), np.float32)
+            dets = []
+            for m in markers:
+                cx, cy = (m["x"] + 0.5) / 4 - 0.5, (m["y"] + 0.5) / 4 - 0.5
+                prob[(xx - cx) ** 2 + (yy - cy) ** 2 <= (m["radius_px"] / 4) ** 2] = 1.0
+                dets.append(MarkerDetection(m["x"], m["y"], 0.9, m["type"], m["radius_px"], 0.5))
+            return DetectionResult(dets, (w, h), probability=prob)
+
+    monkeypatch.setitem(registry._REGISTERED, "truth", TruthDetector)
+    out = root / "out_cloud"
+    rc = main(["-q", "georef", "--reconstruction", str(s / "sparse"), "--images", str(s / "images"),
+               "--gcps", str(s / "gcps.csv"), "--crs", "EPSG:25832", "--cloud", str(s / "fused.ply"),
+               "--mesh", str(s / "mesh.ply"), "--detector", "truth", "--mode", "cloud", "--out", str(out)])
+    report = json.loads((out / "report.json").read_text())
+    assert rc == 0 and report["mode"] == "cloud" and report["detector"] == "truth"
+    assert len(list((out / "stages" / "prob").glob("*.npy"))) == 16
+    true_c = {m["name"]: np.array(m["center_model"]) for m in truth["markers"]}
+    paired = [m for m in report["markers"] if m["surveyed_name"]]
+    assert len(paired) == 6 and report["n_markers"] == 6
+    for m in paired:
+        d = {n: np.linalg.norm(c - m["model_point"]) for n, c in true_c.items()}
+        assert min(d, key=d.get) == m["surveyed_name"]
