@@ -52,7 +52,7 @@ log = logging.getLogger(__name__)
 
 STAGE_FORMAT = "cpdetect.georef-stage/1"
 # bumped whenever what a stage computes changes, so that stale stage files are recomputed
-ALGORITHM_VERSION = 9
+ALGORITHM_VERSION = 10
 REPORT_FORMAT = "cpdetect.georef-report/1"
 DETECTIONS_FORMAT = "cpdetect.detections/1"
 MODES = ("auto", "cloud", "ray", "triangulate")
@@ -379,6 +379,10 @@ def _pose_cam(scene, name):
     return scene.cameras[rec.camera_id], rec.cam_from_world
 
 
+class _NothingFound(Exception):
+    """A localization mode found no candidate; the run goes on and reports ``failed`` with the reason."""
+
+
 def _marker_radius_from_depths(scene, per_image, depth_of: Callable) -> float:
     """Median equal-area marker radius (model units) from detections' radius_px and depth."""
     radii = []
@@ -392,7 +396,7 @@ def _marker_radius_from_depths(scene, per_image, depth_of: Callable) -> float:
         r = np.array([x["radius_px"] for x in dets]) * z / cam.fx
         radii.extend(r[np.isfinite(r) & (r > 0)].tolist())
     if not radii:
-        raise InputError("no detection could be placed in 3D (no detections, or none on the model)")
+        raise _NothingFound("no detection could be placed in 3D (no detections, or none on the model)")
     return float(np.median(radii))
 
 
@@ -472,7 +476,7 @@ def _localize_ray(scene, per_image, settings, mesh_rc) -> dict:
             radii.append(dets[k]["radius_px"] * z / cam.fx)
             normals.append(h.normals[k])
     if not hits:
-        raise InputError("no detection ray hit the mesh (no detections, or the mesh is not in the "
+        raise _NothingFound("no detection ray hit the mesh (no detections, or the mesh is not in the "
                          "reconstruction's frame)")
     hits, weights, normals, radii = np.array(hits), np.array(weights), np.array(normals), np.array(radii)
     radius = float(np.median(radii))
@@ -505,7 +509,7 @@ def _localize_triangulate(scene, per_image, settings) -> dict:
         for k, x in enumerate(dets):
             rays.append((i, o[k], v[k], x["radius_px"], cam.fx))
     if len(rays) < 2:
-        raise InputError("too few detections to triangulate markers")
+        raise _NothingFound("too few detections to triangulate markers")
     img = np.array([r[0] for r in rays])
     O = np.array([r[1] for r in rays])
     V = np.array([r[2] for r in rays])
@@ -541,7 +545,7 @@ def _localize_triangulate(scene, per_image, settings) -> dict:
     # apparent sizes shrink with obliquity (equal-area radius ~ sqrt(cos)): allow a factor 2
     ok &= (gap < 0.5 * r_est) & (np.maximum(ra, rb) < 2.0 * np.minimum(ra, rb))
     if not ok.any():
-        raise InputError("no two detections in different images agree on a 3D position")
+        raise _NothingFound("no two detections in different images agree on a 3D position")
     mids = 0.5 * (pa[ok] + pb[ok])
     radius = float(np.median(r_est[ok]))
     # a marker detected in two images only gives one pair: every midpoint may found a candidate (false
@@ -576,17 +580,22 @@ def stage_localize(store, scene, per_image, settings, inputs: GeorefInputs, prev
         mesh_rc = _load_mesh_scene(inputs.mesh)
         results = []
         for part in mode.split("+"):
-            if part == "cloud":
-                cloud, normals = _load_cloud(inputs.cloud)
-                res = _localize_cloud(scene, per_image, settings, cloud, normals, mesh_rc, store.dir, progress)
-            elif part == "ray":
-                res = _localize_ray(scene, per_image, settings, mesh_rc)
-            else:
-                res = _localize_triangulate(scene, per_image, settings)
+            try:
+                if part == "cloud":
+                    cloud, normals = _load_cloud(inputs.cloud)
+                    res = _localize_cloud(scene, per_image, settings, cloud, normals, mesh_rc, store.dir, progress)
+                elif part == "ray":
+                    res = _localize_ray(scene, per_image, settings, mesh_rc)
+                else:
+                    res = _localize_triangulate(scene, per_image, settings)
+            except _NothingFound as exc:
+                log.warning("localize (%s): %s", part, exc)
+                res = {"mode": part, "radius_model": None, "candidates": [], "reason": str(exc)}
             for c in res["candidates"]:
                 c["source"] = part
             results.append(res)
-        out = {"mode": mode, "radius_model": results[0]["radius_model"],
+        radii = [r["radius_model"] for r in results if r["radius_model"] is not None]
+        out = {"mode": mode, "radius_model": radii[0] if radii else None,
                "candidates": [c for r in results for c in r["candidates"]],
                "details": {r["mode"]: {k: v for k, v in r.items() if k != "candidates"} for r in results}}
         return out
@@ -744,7 +753,6 @@ def stage_triangulate(store, ctx_factory, scene, refined, localized, per_image, 
     key = [prev_key, _stage_settings(settings, "triangulate")]
 
     def compute():
-        radius = float(localized["radius_model"])
         dropped: list[dict] = []
         first = _merge_duplicates(_triangulate_markers(scene, refined["markers"], settings, dropped), dropped)
         # pass 2: the triangulated points project to within a pixel or so: refine in every view again
@@ -761,7 +769,7 @@ def stage_triangulate(store, ctx_factory, scene, refined, localized, per_image, 
             m["quality"] = marker_quality(m, settings)
         adjusted = None
         if settings.adjust and out:
-            adjusted = _adjust(scene, out, settings, radius)
+            adjusted = _adjust(scene, out, settings)
         return {"markers": out, "dropped": dropped, "adjusted": adjusted, "rejected_views": rejected}
 
     return store.run("triangulate", key, compute)
@@ -812,7 +820,7 @@ def _merge_duplicates(markers, dropped):
         kept.append(k)
     return [markers[k] for k in sorted(kept)]
 
-def _adjust(scene, markers, settings, radius):
+def _adjust(scene, markers, settings):
     from geometry.adjust import MarkerObservation, bundle_adjust
 
     obs = [MarkerObservation(j, o["image"], np.array([o["x"], o["y"]]), max(o["sigma_px"], settings.sigma_floor_px))
@@ -820,6 +828,7 @@ def _adjust(scene, markers, settings, radius):
     names = {o.image for o in obs}
     poses = {n: scene.images[n].cam_from_world for n in names}
     cams = {n: scene.camera_of(n) for n in names}
+    radius = float(np.median([m["radius_model"] for m in markers]))
     prior_pos = settings.prior_pos if settings.prior_pos is not None else 0.4 * radius
     res = bundle_adjust(np.array([m["model_point"] for m in markers]), obs, poses, cams,
                         sigma_rot_rad=math.radians(settings.prior_rot_deg), sigma_pos=prior_pos,
@@ -951,8 +960,11 @@ def build_report(settings, inputs, localized, triangulated, registered, surveyed
     paired = [m for m in markers if m["surveyed_name"] is not None]
     crs_from_model = _crs_from_model(wfm, triangulated["markers"], surveyed)
     status = registered["status"] if registered["status"] != "ok" else ("ok" if len(paired) >= 3 else "failed")
+    reason = registered.get("reason", "")
+    if not localized["candidates"]:
+        reason = "; ".join(d["reason"] for d in localized.get("details", {}).values() if d.get("reason")) or reason
     report = {
-        "format": REPORT_FORMAT, "status": status, "reason": registered.get("reason", ""),
+        "format": REPORT_FORMAT, "status": status, "reason": reason,
         "detector": settings.detector if inputs.detections is None else f"detections from {Path(inputs.detections).name}",
         "mode": localized["mode"], "crs": surveyed.crs,
         "local_frame": None if surveyed.frame is None else _frame_dict(surveyed.frame),

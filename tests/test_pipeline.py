@@ -189,3 +189,18 @@ def test_cloud_mode_colorizes_the_dense_cloud_with_probability_maps(site, monkey
     for m in paired:
         d = {n: np.linalg.norm(c - m["model_point"]) for n, c in true_c.items()}
         assert min(d, key=d.get) == m["surveyed_name"]
+
+
+def test_no_detections_gives_a_failed_report_not_a_crash(site, tmp_path):
+    root, truth = site
+    s = root / "site"
+    empty = tmp_path / "none.json"
+    empty.write_text(json.dumps({"format": "cpdetect.detections/1", "detector": "none", "images": [
+        {"file": im["name"], "width": 768, "height": 512, "detections": []} for im in truth["images"]]}))
+    rc = main(["-q", "georef", "--reconstruction", str(s / "sparse"), "--images", str(s / "images"),
+               "--gcps", str(s / "gcps.csv"), "--crs", "EPSG:25832", "--mesh", str(s / "mesh.ply"),
+               "--detections", str(empty), "--out", str(tmp_path / "o")])
+    report = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert rc == 1 and report["status"] == "failed" and report["n_markers"] == 0
+    assert "no detection" in report["reason"]
+    assert not (tmp_path / "o" / "gcp_list.txt").exists()
