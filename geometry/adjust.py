@@ -58,11 +58,12 @@ class AdjustResult:
 
 def bundle_adjust(points: np.ndarray, observations: list[MarkerObservation], poses: dict[str, Rigid3],
                   cameras: dict[str, Camera], sigma_rot_rad: float = 1e-3, sigma_pos: float = 0.01,
-                  loss: str = "huber", f_scale: float = 3.0, max_nfev: int = 50) -> AdjustResult:
+                  loss: str = "huber", f_scale: float = 3.0, max_nfev: int = 200, ftol: float = 1e-6) -> AdjustResult:
     """Adjust marker points (m, 3) and the poses of the images that observe them.
 
     ``poses`` and ``cameras`` map image keys to cam_from_world and to the image's camera;
-    ``sigma_rot_rad`` / ``sigma_pos`` (model units) are the 1-sigma priors on the poses.
+    ``sigma_rot_rad`` / ``sigma_pos`` (model units) are the 1-sigma priors on the poses; ``ftol`` and
+    ``max_nfev``: stopping rules of ``least_squares`` (relative cost change, evaluations).
     """
     X0 = np.asarray(points, float).reshape(-1, 3)
     m = len(X0)
@@ -112,7 +113,7 @@ def bundle_adjust(points: np.ndarray, observations: list[MarkerObservation], pos
         A[2 * n_obs + k, k] = 1
     x0 = np.concatenate([np.zeros(6 * n_img), X0.ravel()])
     sol = least_squares(fun, x0, jac_sparsity=A, x_scale="jac", loss=loss, f_scale=f_scale, method="trf",
-                        max_nfev=max_nfev)
+                        max_nfev=max_nfev, ftol=ftol)
     w, dc, X, R, t = unpack(sol.x)
     pix, _ = project_batch(X[pj], R[oi], t[oi], f, c, dist)
     res_px = pix - uv
