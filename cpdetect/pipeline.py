@@ -327,25 +327,36 @@ def stage_detect(store: StageStore, scene, image_paths: dict[str, Path], setting
 
 
 def load_detections_json(path: Path, image_paths: dict[str, Path]) -> dict:
-    """Per-image detections from a ``cpdetect.detections/1`` file (images it lacks have none)."""
+    """Per-image detections from a ``cpdetect.detections/1`` file (e.g. written by ``cpdetect detect``).
+
+    Entries are matched to the reconstruction's image names exactly, or else by path suffix (the file
+    may name ``photos/IMG_1.jpg`` for the image ``IMG_1.jpg``); entries with an ``error`` (images the
+    detector could not read) count as images without detections; images it lacks have none.
+    """
     from .types import MarkerDetection
 
     doc = read_json(path, "detections file")
     if not isinstance(doc, dict) or doc.get("format") != DETECTIONS_FORMAT:
         raise InputError(f"not a {DETECTIONS_FORMAT} file (format {doc.get('format') if isinstance(doc, dict) else None!r})",
                          path)
+    names = set(image_paths)
     per_image = {}
     for k, im in enumerate(doc.get("images", [])):
         try:
-            name = str(im["file"])
+            name = str(im["file"]).replace("\\", "/")
+            if name not in names:
+                match = [n for n in names if name.endswith("/" + n)]
+                name = match[0] if len(match) == 1 else name
+            if "error" in im or "fatal" in im:
+                log.warning("%s: no detections for %s (%s)", path, name, im.get("error") or im.get("fatal"))
+                continue
             dets = [MarkerDetection.from_dict(d).to_dict() for d in im["detections"]]
             per_image[name] = {"width": int(im["width"]), "height": int(im["height"]), "detections": dets,
-                               "probability": None, "seconds": 0.0}
+                               "probability": None, "seconds": float(im.get("seconds", 0.0))}
         except (KeyError, TypeError, ValueError) as exc:
-            raise InputError(f"image entry {k}: {exc}", path) from None
-    unknown = sorted(set(per_image) - set(image_paths))
-    if unknown and len(unknown) == len(per_image):
-        raise InputError(f"no image of the reconstruction is named in it (e.g. {unknown[0]!r})", path)
+            raise InputError(f"image entry {k}: {type(exc).__name__}: {exc}", path) from None
+    if per_image and not set(per_image) & names:
+        raise InputError(f"no image of the reconstruction is named in it (e.g. {sorted(per_image)[0]!r})", path)
     return {n: per_image.get(n, {"width": 0, "height": 0, "detections": [], "probability": None, "seconds": 0.0})
             for n in image_paths}
 
