@@ -1069,7 +1069,8 @@ def run_georef(inputs: GeorefInputs, settings: GeorefSettings = GeorefSettings()
 
     if inputs.detections is not None:
         per_image = load_detections_json(Path(inputs.detections), image_paths)
-        k1 = _hash(["detections-file", _file_key(Path(inputs.detections))])
+        k1 = _hash(["detections-file", _file_key(Path(inputs.detections)),
+                    [(n, _file_key(p)) for n, p in image_paths.items()]])  # refine reads the images
     else:
         per_image, k1 = stage_detect(store, scene, image_paths, settings, progress)
     k1 = _hash([k1, recon_key])
