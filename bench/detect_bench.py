@@ -21,7 +21,6 @@ Writes bench/results/detect_bench.json and prints a summary.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import subprocess
 import sys
@@ -275,7 +274,6 @@ def main(argv=None) -> int:
                             "images": {d.root.name: len(d.images) for d in datasets}}}
     print("classical ...", file=sys.stderr)
     report["classical"] = bench_classical(datasets, ClassicalDetector())
-    report["classical_small_only"] = bench_classical(datasets[:1], ClassicalDetector())  if len(datasets) > 1 else None
     print("chess-corners ...", file=sys.stderr)
     report["chess_corners"] = {p: bench_chess(datasets, p) for p in ("chess_multiscale", "radon_multiscale")}
     print("seeded refiners ...", file=sys.stderr)

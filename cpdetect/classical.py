@@ -37,7 +37,7 @@ import numpy as np
 from .detector import as_gray_uint8, settings_from_dataclass
 from .refine import refine_center
 from .types import DetectionResult, MarkerDetection
-from .xcorner import Candidate, build_pyramid, find_candidates
+from .xcorner import build_pyramid, find_candidates
 
 TWO_PI = 2.0 * np.pi
 
@@ -92,14 +92,6 @@ class _Levels:
             self.items.append((1.0, full))
         for i, lev in enumerate(pyramid):
             self.items.append((float(search_k * 2 ** i), lev))
-
-    def pick(self, spacing: float) -> tuple[float, np.ndarray]:
-        """The coarsest level whose pixel is no larger than ``spacing`` full-res pixels."""
-        best = self.items[0]
-        for s, img in self.items:
-            if s <= max(spacing, self.items[0][0]):
-                best = (s, img)
-        return best
 
     def sample(self, xs: np.ndarray, ys: np.ndarray, spacing: np.ndarray) -> np.ndarray:
         """Bilinear samples at full-res points (xs, ys) (same shape), each from the level matched to
@@ -221,7 +213,10 @@ def marker_score(feats: dict) -> float:
 
 
 class _Verifier:
-    """Checks candidates against the marker model; see the module doc, step 3."""
+    """Checks candidates against the marker model; see the module doc, step 3.
+
+    After each accepted verification ``last_features`` holds the score features (used by
+    bench/fit_score.py to refit the score model)."""
 
     N_THETA = 72
 
@@ -362,7 +357,7 @@ class _Verifier:
         Praw = P[core]
         levels, spreads, dark_flags = [], [], []
         for k in range(4):
-            a0, a1 = bounds[k], bounds[k] + widths[k]
+            a0 = bounds[k]
             rel = np.mod(self.theta - a0, TWO_PI)
             m = (rel > math.radians(12)) & (rel < widths[k] - math.radians(12))
             if m.sum() < 2:
@@ -513,7 +508,6 @@ class _Verifier:
         e_two = math.sqrt(np.mean([e[0] ** 2 for e in e2]))
         e_ell, ell = _ellipse_residual(all_pts)
         floor = 0.12 + 0.01 * r0
-        self.last_fit = (e_line, e_two, e_ell, r0)
         if e_line <= max(2.0 * e_two, floor) and e_line < 0.05 * r0:
             mtype = "diagonal"
         elif e_two < e_ell:
@@ -606,7 +600,6 @@ class _Verifier:
         outline distance) the surroundings of dark sectors and of bright sectors must not both be
         inverted (bright next to dark, dark next to bright: a checkerboard or a tag's bit cells), and
         farther out (1.35, 1.6) the ring must not alternate between the marker's two levels."""
-        ang = self.theta
         # distance from the centre to the outline polygon along each ray
         dist = np.full(self.N_THETA, np.nan)
         P = outline - np.array([x, y])

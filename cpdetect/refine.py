@@ -229,7 +229,6 @@ def refine_symmetry(gray: np.ndarray, x0: float, y0: float, radius_px: float, wi
     wt = np.where(rr < 0.7 * rmax, 1.0, 0.5 + 0.5 * np.cos(np.pi * (rr - 0.7 * rmax) / (0.3 * rmax + 1e-9)))
     px, py = float(x0), float(y0)
     hh, ww = img.shape
-    nmax = int(np.abs(di).max())
     converged = False
     sn = np.inf
     robust = np.ones(len(d))
@@ -442,7 +441,15 @@ def refine_center(gray: np.ndarray, x0: float, y0: float, radius_px: float, meth
                           max_shift_px=shift, shape_hint=shape_hint)
     if sym.ok and np.hypot(sym.x - x0, sym.y - y0) <= shift:
         return sym
-    others = [r for r in (sad, refine_hough(gray, x0, y0, radius_px, **kw)) if r.ok]
+    if w >= 5.0:
+        # occluders, the image border or strong tilt spoil large windows first: retry a smaller one
+        sym2 = refine_symmetry(gray, seed[0], seed[1], radius_px, window_px=0.5 * w, max_shift_px=shift,
+                               shape_hint=shape_hint)
+        if sym2.ok and np.hypot(sym2.x - x0, sym2.y - y0) <= shift:
+            return sym2
+    # fall-backs are less robust: keep them only close to the seed
+    others = [r for r in (sad, refine_hough(gray, x0, y0, radius_px, **kw))
+              if r.ok and np.hypot(r.x - x0, r.y - y0) <= 0.5 * shift]
     if not others:
         return _fail(x0, y0, "auto", f"symmetry: {sym.reason}; saddle: {sad.reason}")
     return min(others, key=lambda r: r.sigma_px)
