@@ -2,7 +2,7 @@
 cost of the correspondence-free registration against the number of surveyed points. Writes JSON.
 
     .venv/bin/python bench/scale_bench.py [--sizes 10,100,1000] [--size 160x120] [--workers 2]
-        [--big 2] [--reg-sizes 5,10,20,50,100,200] [--reg-layouts 5] [--out bench/results/scale_bench.json]
+        [--big 4] [--reg-sizes 5,10,20,50,100,200] [--reg-layouts 5] [--out bench/results/scale_bench.json]
 
 Run it on a tree nobody is editing (e.g. ``git archive HEAD | tar -x -C /tmp/snap``): the child
 processes import the detector at different moments, and an edit in between shows as ``identical: false``.
@@ -14,7 +14,7 @@ processes import the detector at different moments, and an edit in between shows
   of ``--workers`` single-threaded worker processes; its start-up time is reported apart). Each
   configuration runs in a fresh child process; the parent samples the resident memory (RSS) of the
   child and all its descendants every 20 ms and reports the peak of their sum (``peak_tree_rss_mb``)
-  and the child's own peak (``ru_maxrss``). ``identical`` says the output equals the serial one
+  and the child's own peak (``ru_maxrss``, ``main_maxrss_mb``). ``identical`` says the output equals the serial one
   (timings aside). Images per second count the detection run only (no interpreter start).
 * **45 MP**: ``--big`` JPEGs of 8192 x 5464 px (a synthetic marker image from
   :mod:`cpdetect.synth_images`, upscaled, with fresh noise), serial and pool: seconds per image and
@@ -191,7 +191,10 @@ def bench_detection(tmp: Path, sizes, size, workers, configs=("serial", "pool", 
 
 
 def bench_big(tmp: Path, n: int, workers: int) -> list[dict]:
-    images = make_big_images(tmp / "big", n, seed=7)
+    # made in a child process: the children that measure memory are forked from this one, and on Linux
+    # a forked child's ru_maxrss starts from its parent's resident size
+    subprocess.run([sys.executable, __file__, "--make-big", str(n), "--images", str(tmp / "big")], check=True)
+    images = tmp / "big"
     (tmp / "big" / "small").rename(tmp / "big-small")
     rows = []
     for config in ("serial", "pool"):
@@ -242,7 +245,7 @@ def main() -> None:
     ap.add_argument("--sizes", default="10,100,1000")
     ap.add_argument("--size", default="160x120")
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--big", type=int, default=2, help="number of 45 MP images (0: skip)")
+    ap.add_argument("--big", type=int, default=4, help="number of 45 MP images (0: skip)")
     ap.add_argument("--reg-sizes", default="5,10,20,50,100,200")
     ap.add_argument("--reg-layouts", type=int, default=5)
     ap.add_argument("--skip-detection", action="store_true")
@@ -252,7 +255,11 @@ def main() -> None:
     ap.add_argument("--child", choices=("serial", "pool", "dask"), help=argparse.SUPPRESS)
     ap.add_argument("--images", help=argparse.SUPPRESS)
     ap.add_argument("--result", help=argparse.SUPPRESS)
+    ap.add_argument("--make-big", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.make_big:
+        make_big_images(Path(args.images), args.make_big, seed=7)
+        return
     if args.child:
         child(args)
         return
