@@ -52,7 +52,7 @@ log = logging.getLogger(__name__)
 
 STAGE_FORMAT = "cpdetect.georef-stage/1"
 # bumped whenever what a stage computes changes, so that stale stage files are recomputed
-ALGORITHM_VERSION = 10
+ALGORITHM_VERSION = 11
 REPORT_FORMAT = "cpdetect.georef-report/1"
 DETECTIONS_FORMAT = "cpdetect.detections/1"
 MODES = ("auto", "cloud", "ray", "triangulate")
