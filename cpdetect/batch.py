@@ -20,7 +20,7 @@ sends back only the small record; the results, in input order, are identical wha
 (but for the ``seconds`` timings). Memory is bounded by the images in flight, never by their number.
 
 A run that stops on an error keeps the parts of the images it finished (a rerun resumes), but leaves
-no output file and no empty parts folder behind.
+no output file and no folder that it created and left empty.
 """
 from __future__ import annotations
 

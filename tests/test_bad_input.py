@@ -408,15 +408,18 @@ def test_georef_inputs(cli, site, case):
 
 def test_georef_ignores_registered_images_missing_from_the_folder(cli, site):
     """Documented: registered images that are not in the image folder are ignored with a warning
-    (here the two remaining views cannot place any marker, a one-line error)."""
+    naming the folder. (Here the two remaining views cannot place any marker: a failed report, exit 1.)"""
     model = _colmap_text(site / "model", ["0000.jpg", "0001.jpg", "lost.jpg"])
     d = _dets(site / "dets.json", ["0000.jpg", "0001.jpg"])
+    out = site / "out"
     res = cli("-q", "georef", "--reconstruction", model, "--images", site / "images", "--gcps", site / "gcps.csv",
-              "--detections", d, "--out", site / "out")
-    assert res.rc == 2
+              "--detections", d, "--out", out)
+    assert res.rc == 1
     assert res.err[0] == f"WARNING: 1 registered images are not in {site / 'images'}; they are ignored"
-    assert len(res.err) == 2 and res.err[1].startswith("cpdetect georef: error: ")
-    assert "Traceback" not in "\n".join(res.err)
+    assert all(line.startswith("WARNING: ") for line in res.err)
+    assert [im["file"] for im in json.loads((out / "detections.json").read_text())["images"]] == \
+        ["0000.jpg", "0001.jpg"]
+    assert json.loads((out / "report.json").read_text())["status"] == "failed"
 
 
 # ---------------------------------------------------------------------------------------------------

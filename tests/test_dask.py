@@ -17,7 +17,8 @@ from cpdetect.executors import DaskExecutor, SerialExecutor, make_executor  # no
 
 @pytest.fixture(scope="module")
 def cluster():
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+    # threads in this process, but a real TCP scheduler address as `--scheduler tcp://host:port` gets
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, protocol="tcp://",
                                   dashboard_address=None) as cl, distributed.Client(cl) as client:
         yield cl, client
 
@@ -48,6 +49,7 @@ def test_dask_client_equals_serial(images, serial_doc, cluster, tmp_path):
 
 def test_cli_scheduler_address(images, serial_doc, cluster, tmp_path, capsys):
     cl, _ = cluster
+    assert cl.scheduler_address.startswith("tcp://127.0.0.1:")
     out = tmp_path / "det.json"
     assert main(["-q", "detect", str(images), "--out", str(out), "--scheduler", cl.scheduler_address]) == 0
     assert without_timing(json.loads(out.read_text())) == without_timing(serial_doc)
