@@ -234,7 +234,7 @@ class _Verifier:
         ys = y + radii[:, None] * self.sin[None, :]
         return self.levels.sample(xs, ys, np.broadcast_to(spacing[:, None], xs.shape))
 
-    def prefilter(self, xy: np.ndarray, r_start: np.ndarray, q_min: float = 0.55) -> np.ndarray:
+    def prefilter(self, xy: np.ndarray, r_start: np.ndarray, q_min: float = 0.75) -> np.ndarray:
         """Vectorised first look at many candidates (n, 2) full-res: four inner rings with a strong,
         steady second angular harmonic (the test that opens :meth:`core`). Returns a bool (n,)."""
         if len(xy) == 0:
@@ -254,7 +254,11 @@ class _Verifier:
         h2 = ((P - mean) * np.exp(-2j * self.theta)[None, None, :]).mean(2)
         q = math.sqrt(2) * np.abs(h2) / std
         dphi = np.abs(_wrap(np.angle(h2) - np.angle(h2[:, :1])))
-        return ok & (q.min(1) >= q_min) & (dphi.max(1) <= math.radians(25))
+        # exactly four sectors in the mean normalised profile (as :meth:`core` will require)
+        T = ((P - mean) / std[:, :, None]).mean(1)
+        sign = T > 0
+        four = (sign != np.roll(sign, 1, axis=1)).sum(1) == 4
+        return ok & four & (q.min(1) >= q_min) & (dphi.max(1) <= math.radians(25))
 
     def is_xcorner(self, x: float, y: float, r_start: float, levels: tuple[float, float] | None = None,
                    q_min: float = 0.75) -> bool:
