@@ -97,3 +97,9 @@ def test_importing_cpdetect_does_not_import_dask():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "[]"
+
+
+def test_without_dask_a_scheduler_is_a_usage_error(monkeypatch):
+    monkeypatch.setitem(sys.modules, "distributed", None)  # as if not installed
+    with pytest.raises(UsageError, match=r"pip install 'cpdetect\[dask\]'"):
+        make_executor(scheduler="tcp://127.0.0.1:9")

@@ -30,7 +30,10 @@ def finished_parts(parts: Path) -> dict[str, dict]:
 
 
 @pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs SIGKILL")
-def test_killed_run_resumes_to_the_same_result(tmp_path, capsys):
+@pytest.mark.parametrize("workers", [1, 2])
+def test_killed_run_resumes_to_the_same_result(tmp_path, capsys, workers):
+    """With workers, the whole process group (the command and its pool) is killed, as when a node dies;
+    the rerun also runs with workers, and must still equal the serial reference."""
     images = write_marker_images(tmp_path / "images", N_IMAGES)
     names = {f"{i:04d}.jpg" for i in range(N_IMAGES)}
 
@@ -42,8 +45,9 @@ def test_killed_run_resumes_to_the_same_result(tmp_path, capsys):
     out = tmp_path / "run" / "detections.json"
     parts = out.parent / "detections.json.parts"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    proc = subprocess.Popen([*CPDETECT, "-q", "detect", str(images), "--out", str(out)], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    cmd = [*CPDETECT, "-q", "detect", str(images), "--out", str(out), "--workers", str(workers)]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
     try:
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline and proc.poll() is None:
@@ -51,9 +55,10 @@ def test_killed_run_resumes_to_the_same_result(tmp_path, capsys):
                 break
             time.sleep(0.01)
         assert proc.poll() is None, "the run ended before it could be interrupted"
-        proc.send_signal(signal.SIGKILL)
+        os.killpg(proc.pid, signal.SIGKILL)  # the command and its worker processes, if any
     finally:
-        proc.kill()
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
         proc.wait(timeout=30)
     assert proc.returncode == -signal.SIGKILL
     assert not out.exists()
@@ -61,8 +66,8 @@ def test_killed_run_resumes_to_the_same_result(tmp_path, capsys):
     assert 1 <= len(before) < N_IMAGES, len(before)
     assert set(before) <= names
 
-    rerun = subprocess.run([*CPDETECT, "--debug", "detect", str(images), "--out", str(out)], env=env,
-                           capture_output=True, text=True, timeout=120)
+    rerun = subprocess.run([*CPDETECT, "--debug", "detect", str(images), "--out", str(out), "--workers",
+                            str(workers)], env=env, capture_output=True, text=True, timeout=120)
     assert rerun.returncode == 0, rerun.stderr[-2000:]
     assert "Traceback" not in rerun.stderr
     processed = set(re.findall(r"processed (\d{4}\.jpg)$", rerun.stderr, flags=re.M))
