@@ -31,7 +31,7 @@ def finished_parts(parts: Path) -> dict[str, dict]:
 
 @pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs SIGKILL")
 @pytest.mark.parametrize("workers", [1, 2])
-def test_killed_run_resumes_to_the_same_result(tmp_path, capsys, workers):
+def test_killed_run_resumes_to_the_same_result(tmp_path, workers):
     """With workers, the whole process group (the command and its pool) is killed, as when a node dies;
     the rerun also runs with workers, and must still equal the serial reference."""
     images = write_marker_images(tmp_path / "images", N_IMAGES)
