@@ -52,7 +52,8 @@ class HMASettings:
     image is downscaled to it; None = full resolution). tile / overlap: tiling of the processing image
     (pixels) for bounded memory. min_radius_px: smallest instance kept (equal-area radius, image
     pixels). refine: centre refinement method of cpdetect.refine ("auto", "symmetry", "saddle",
-    "hough") or "none". threads: torch CPU threads (None = leave as is).
+    "hough") or "none". drop_unrefined: drop instances where refinement finds no X-corner (blobs of
+    texture are not markers). threads: torch CPU threads (None = leave as is).
     """
 
     model_dir: str | None = None
@@ -65,6 +66,7 @@ class HMASettings:
     overlap: int = 96
     min_radius_px: float = 3.0
     refine: str = "auto"
+    drop_unrefined: bool = True
     threads: int | None = None
 
     def __post_init__(self) -> None:
@@ -151,6 +153,16 @@ def checker_phase_type(gray: np.ndarray, cx: float, cy: float, radius: float, qu
 
     # square: boundaries point at the edge midpoints; diagonal: at the corners
     return "square" if dist(edge_dirs) <= dist(corner_dirs) else "diagonal"
+
+
+def dedupe(dets: list[MarkerDetection]) -> list[MarkerDetection]:
+    """Merge instances that refined onto the same X-corner (closer than a third of the smaller radius,
+    at least 1 px): the larger component (the better segmented one) is kept."""
+    kept: list[MarkerDetection] = []
+    for d in sorted(dets, key=lambda d: -d.radius_px):
+        if all(math.hypot(d.x - k.x, d.y - k.y) > max(1.0, min(d.radius_px, k.radius_px) / 3.0) for k in kept):
+            kept.append(d)
+    return kept
 
 
 class HMADetector:
@@ -247,6 +259,8 @@ class HMADetector:
                 r = refine_center(gray, cx, cy, radius, method=s.refine)
                 if r.ok:
                     cx, cy, sigma = r.x, r.y, max(float(r.sigma_px), 1e-3)
+                elif s.drop_unrefined:
+                    continue
             if kind == "circle":
                 mtype = "circle"
             else:
@@ -255,8 +269,8 @@ class HMADetector:
             cy = float(np.clip(cy, -0.5, h - 0.5))
             out.append(MarkerDetection(x=cx, y=cy, score=score, type=mtype, radius_px=float(radius),
                                        sigma_px=float(sigma)))
-        return out
+        return dedupe(out)
 
 
-__all__ = ["HMADetector", "HMASettings", "default_model_dir", "shipped_weights_present", "classify_shape",
+__all__ = ["HMADetector", "HMASettings", "dedupe", "default_model_dir", "shipped_weights_present", "classify_shape",
            "checker_phase_type"]

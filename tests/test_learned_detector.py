@@ -186,3 +186,25 @@ def test_detector_runs_without_torch(micro_model_dir, tmp_path):
 class TestHMAContract(DetectorContract):
     detector_name = "hma"
     settings = {"backend": "opencv"}
+
+
+def test_dedupe_keeps_one_detection_per_x_corner():
+    from cpdetect.types import MarkerDetection
+    from learned.adapter import dedupe
+
+    big = MarkerDetection(50.0, 50.0, 0.7, "square", 20.0, 0.1)
+    frag = MarkerDetection(50.4, 49.8, 0.9, "square", 6.0, 0.1)
+    other = MarkerDetection(80.0, 50.0, 0.8, "circle", 10.0, 0.1)
+    assert dedupe([frag, big, other]) == [big, other]
+    assert len(dedupe([big, MarkerDetection(60.0, 50.0, 0.9, "square", 20.0, 0.1)])) == 2
+
+
+def test_blobs_without_an_x_corner_are_dropped():
+    # a dark disc on grey: the oracle says "marker", refinement finds no X-corner
+    img = np.full((128, 128), 128, np.uint8)
+    cv2.circle(img, (64, 64), 20, 30, -1)
+    mask = np.zeros(img.shape, np.uint8)
+    cv2.circle(mask, (64, 64), 20, 1, -1)
+    assert HMADetector.with_backend(OracleBackend(mask)).detect(img).detections == []
+    kept = HMADetector.with_backend(OracleBackend(mask), drop_unrefined=False).detect(img).detections
+    assert len(kept) == 1 and abs(kept[0].x - 64) < 0.5 and abs(kept[0].y - 64) < 0.5
