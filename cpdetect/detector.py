@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import re
 from importlib import metadata
 from typing import Any, Callable, Protocol, runtime_checkable
 
@@ -91,17 +92,23 @@ def factory_settings(factory: Callable[..., Any]) -> list[str]:
             if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD) and p.name != "self"]
 
 
-def get_detector(name: str, **settings: Any) -> Detector:
-    """Build the detector registered as ``name`` with keyword ``settings``.
-
-    Raises :class:`UsageError` for an unknown name or an unknown setting (listing the valid ones).
-    """
+def _checked_factory(name: str, settings: dict[str, Any]) -> Callable[..., Detector]:
+    """The factory of ``name``; UsageError for an unknown name or setting (listing the valid ones)."""
     factory = resolve_factory(name)
     valid = factory_settings(factory)
     unknown = sorted(set(settings) - set(valid))
     if unknown:
         raise UsageError(f"detector {name!r} has no setting {', '.join(map(repr, unknown))}; "
                          f"valid: {', '.join(valid) or '(none)'}")
+    return factory
+
+
+def get_detector(name: str, **settings: Any) -> Detector:
+    """Build the detector registered as ``name`` with keyword ``settings``.
+
+    Raises :class:`UsageError` for an unknown name or an unknown setting (listing the valid ones).
+    """
+    factory = _checked_factory(name, settings)
     try:
         return factory(**settings)
     except (TypeError, ValueError) as exc:
@@ -125,12 +132,73 @@ def parse_settings(pairs: list[str]) -> dict[str, Any]:
 
 
 def settings_from_dataclass(settings_cls: type, values: dict[str, Any]):
-    """Build a frozen settings dataclass, rejecting unknown keys with the list of valid ones."""
+    """Build a frozen settings dataclass, rejecting unknown keys with the list of valid ones and values of
+    the wrong type (see :func:`check_setting_types`), each as a one-line :class:`UsageError`."""
     names = [f.name for f in dataclasses.fields(settings_cls)]
     unknown = sorted(set(values) - set(names))
     if unknown:
         raise UsageError(f"unknown setting {', '.join(map(repr, unknown))}; valid: {', '.join(names)}")
+    check_setting_types(settings_cls, values)
     return settings_cls(**values)
+
+
+# annotation name -> test of a (JSON-parsed) value; an int is a valid float, a bool is not a number
+_TYPE_TESTS: dict[str, Callable[[Any], bool]] = {
+    "bool": lambda v: isinstance(v, bool),
+    "int": lambda v: isinstance(v, int) and not isinstance(v, bool),
+    "float": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
+    "str": lambda v: isinstance(v, str),
+    "None": lambda v: v is None,
+}
+
+
+def _annotation_kinds(f: "dataclasses.Field") -> list[str] | None:
+    """The simple kinds a field accepts (``"float | None"`` -> ["float", "None"]), from its annotation
+    (a string under ``from __future__ import annotations``) or else the type of its default; None when
+    the annotation holds anything else (a value of that field is then not checked)."""
+    ann = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
+    ann = ann.replace(" ", "")
+    opt = re.fullmatch(r"(?:typing\.)?Optional\[(.+)\]", ann)
+    if opt:
+        ann = opt.group(1) + "|None"
+    kinds = []
+    for part in ann.split("|"):
+        if part in _TYPE_TESTS:
+            kinds.append(part)
+        elif re.fullmatch(r"(?:typing\.)?(?:tuple|Tuple|list|List)(?:\[.*\])?", part):
+            kinds.append("list")  # JSON gives a list; its items are not checked here
+        else:
+            return None
+    return kinds or None
+
+
+def check_setting_types(settings_cls: type, values: dict[str, Any]) -> None:
+    """Raise a one-line :class:`UsageError` for a value of the wrong type (``min_score="high"`` for a
+    float), judged by the field's annotation of ``settings_cls``; otherwise it would fail deep inside
+    the detector. Fields with annotations other than bool/int/float/str/None/tuple/list are not checked."""
+    import json
+
+    for f in dataclasses.fields(settings_cls):
+        if f.name not in values:
+            continue
+        kinds = _annotation_kinds(f)
+        if kinds is None:
+            continue
+        v = values[f.name]
+        if any(isinstance(v, (list, tuple)) if k == "list" else _TYPE_TESTS[k](v) for k in kinds):
+            continue
+        default = "" if f.default is dataclasses.MISSING else f" (default {json.dumps(f.default, default=str)})"
+        raise UsageError(f"setting {f.name}={json.dumps(v, default=str)}: expected "
+                         f"{' or '.join('null' if k == 'None' else k for k in kinds)}{default}")
+
+
+def check_settings(name: str, settings: dict[str, Any]) -> None:
+    """Check a detector's settings (names and, for a settings dataclass, types) without building the
+    detector: for commands that build it late (``georef``) but should fail on a mistyped ``--set`` at
+    once. Raises :class:`UsageError` (also for an unknown detector)."""
+    cls = getattr(_checked_factory(name, settings), "Settings", None)
+    if cls is not None and dataclasses.is_dataclass(cls):
+        check_setting_types(cls, settings)
 
 
 def as_gray_uint8(image: np.ndarray) -> np.ndarray:

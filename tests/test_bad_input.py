@@ -363,7 +363,7 @@ def _dets(path: Path, names) -> Path:
 @pytest.mark.parametrize("case", ["reconstruction without images", "no reconstruction image in the folder",
                                   "detections of images not in the reconstruction", "detections not JSON",
                                   "detections not UTF-8", "reconstruction missing", "image folder missing",
-                                  "unknown EPSG", "two surveyed points"])
+                                  "unknown EPSG", "two surveyed points", "detector setting of the wrong type"])
 def test_georef_inputs(cli, site, case):
     names = [f"{i:04d}.jpg" for i in range(4)]
     model = site / "model"
@@ -400,6 +400,8 @@ def test_georef_inputs(cli, site, case):
     elif case == "two surveyed points":
         gcps.write_text("name,x,y,z\nA,0,0,0\nB,1,0,0\n")
         named = [gcps, "need at least 3"]
+    elif case == "detector setting of the wrong type":
+        extra, named = ["--set", "min_score=high"], ["min_score", "expected float"]
     out = site / "out"
     res = cli("-q", "georef", "--reconstruction", model, "--images", images, "--gcps", gcps, "--out", out, *extra)
     assert_one_line_error(res, *named)

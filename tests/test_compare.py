@@ -367,6 +367,9 @@ def test_bad_inputs_are_one_line_errors(tmp_path, capsys):
     rc = main(["compare", str(site), "--detectors", "classical", "--set", "min_score=0.3"])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "DETECTOR.KEY=VALUE" in err[0]
+    rc = main(["compare", str(site), "--detectors", "classical", "--set", "classical.min_score=high"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "min_score" in err[0] and "expected float" in err[0]
     assert not (tmp_path / "o").exists()  # nothing half-written
 
 

@@ -1,11 +1,13 @@
 """Package layering, registry behaviour, transforms and the marker renderer."""
 import subprocess
 import sys
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
 
 from cpdetect import available_detectors, get_detector, register_detector
+from cpdetect.detector import check_settings, settings_from_dataclass
 from cpdetect.errors import UsageError
 from cpdetect.markers import MarkerSpec, frontal_homography, projected_radius, render_frontal, render_marker
 from cpdetect.types import DetectionResult
@@ -50,6 +52,54 @@ def test_registry_rejects_unknown_settings():
     assert get_detector("dummy", threshold=0.7).threshold == 0.7
     with pytest.raises(UsageError, match="threshold"):
         get_detector("dummy", treshold=0.7)
+
+
+@dataclass(frozen=True)
+class _ToySettings:
+    threshold: float = 0.5
+    levels: int = 3
+    mode: str = "fast"
+    refine: bool = True
+    max_side: int | None = None
+    scales: tuple[float, ...] = (1.0,)
+
+
+class _Toy:
+    """A third-party style detector: a settings dataclass built by the shared helper."""
+
+    name = "toy"
+    Settings = _ToySettings
+
+    def __init__(self, **settings):
+        self.settings = settings_from_dataclass(_ToySettings, settings)
+
+    def detect(self, image):
+        return DetectionResult([], (image.shape[1], image.shape[0]))
+
+
+@pytest.mark.parametrize("values, expected", [
+    ({"threshold": "high"}, 'setting threshold="high": expected float (default 0.5)'),
+    ({"threshold": True}, "setting threshold=true: expected float"),
+    ({"levels": 2.5}, "setting levels=2.5: expected int (default 3)"),
+    ({"mode": 3}, "setting mode=3: expected str"),
+    ({"refine": "yes"}, 'setting refine="yes": expected bool'),
+    ({"max_side": "big"}, 'setting max_side="big": expected int or null'),
+    ({"scales": 1.0}, "setting scales=1.0: expected list"),
+])
+def test_every_detector_built_by_the_settings_helper_checks_setting_types(values, expected):
+    register_detector("toy", _Toy)
+    with pytest.raises(UsageError) as e:
+        get_detector("toy", **values)
+    assert str(e.value) == expected or str(e.value).startswith(expected)
+    assert "\n" not in str(e.value)
+    with pytest.raises(UsageError, match=expected.split(":")[0]):
+        check_settings("toy", values)  # the same check without building the detector
+
+
+def test_settings_of_the_right_type_pass():
+    register_detector("toy", _Toy)
+    t = get_detector("toy", threshold=1, levels=2, mode="slow", refine=False, max_side=None, scales=[1.0, 0.5])
+    assert t.settings.threshold == 1 and t.settings.max_side is None
 
 
 @pytest.mark.parametrize("marker_type", ["square", "circle", "diagonal"])

@@ -70,10 +70,12 @@ def _progress():
 def run(args) -> int:
     from .. import compare as cmp_mod
     from ..compare_report import write_outputs
-    from ..detector import get_detector
+    from ..detector import check_settings, get_detector
 
     names = cmp_mod.parse_detector_names(args.detectors)
     settings = split_settings(args.set, names)
+    for n in names:  # a mistyped setting fails before the inputs are even looked at
+        check_settings(n, settings[n])
     if not args.input.exists():
         from ..errors import InputError
 

@@ -33,8 +33,7 @@ def run(args) -> int:
     if args.workers < 1:
         raise UsageError("--workers must be >= 1")
     settings = parse_settings(args.settings)
-    get_detector(args.detector, **settings)  # fail early on an unknown detector or setting
-    check_setting_types(args.detector, settings)
+    get_detector(args.detector, **settings)  # fail early on an unknown detector, setting or its type
     jobs = collect_jobs(args.inputs)
     with tqdm(total=len(jobs), unit="img", disable=None, leave=False) as bar:
         doc = detect_batch(jobs, args.detector, settings, args.out, workers=args.workers, skip_bad=args.skip_bad,
@@ -45,26 +44,3 @@ def run(args) -> int:
                                        f", {n_bad} unreadable" if n_bad else "", args.out)
     return 0
 
-
-def check_setting_types(detector: str, settings: dict) -> None:
-    """Raise UsageError for a setting given with the wrong type (``--set min_score=abc``), judged by the
-    default in the detector's settings dataclass; otherwise it would fail deep inside the detector."""
-    import dataclasses
-    import json
-
-    from ..detector import resolve_factory
-    from ..errors import UsageError
-
-    cls = getattr(resolve_factory(detector), "Settings", None)
-    if cls is None or not dataclasses.is_dataclass(cls):
-        return
-    for f in dataclasses.fields(cls):
-        if f.name not in settings or f.default is dataclasses.MISSING:
-            continue
-        want, got = type(f.default), settings[f.name]
-        number = isinstance(got, (int, float)) and not isinstance(got, bool)
-        ok = {bool: isinstance(got, bool), float: number, int: number and isinstance(got, int),
-              str: isinstance(got, str)}.get(want, True)
-        if not ok:
-            raise UsageError(f"--set {f.name}={json.dumps(got)}: expected {want.__name__} "
-                             f"(default {json.dumps(f.default)})")

@@ -38,10 +38,13 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from ..detector import parse_settings
+    from ..detector import check_settings, parse_settings
     from ..pipeline import GeorefInputs, GeorefSettings, run_georef
 
-    settings = GeorefSettings(detector=args.detector, detector_settings=parse_settings(args.set),
+    detector_settings = parse_settings(args.set)
+    if args.detections is None:  # the detector is built late: a mistyped --set must fail before any work
+        check_settings(args.detector, detector_settings)
+    settings = GeorefSettings(detector=args.detector, detector_settings=detector_settings,
                               mode=args.mode, adjust=args.adjust, loss=args.loss,
                               registration_noise_m=args.noise, seed=args.seed)
     inputs = GeorefInputs(reconstruction=args.reconstruction, images=args.images, gcps=args.gcps, out=args.out,
