@@ -154,8 +154,8 @@ _TYPE_TESTS: dict[str, Callable[[Any], bool]] = {
 
 def _annotation_kinds(f: "dataclasses.Field") -> list[str] | None:
     """The simple kinds a field accepts (``"float | None"`` -> ["float", "None"]), from its annotation
-    (a string under ``from __future__ import annotations``) or else the type of its default; None when
-    the annotation holds anything else (a value of that field is then not checked)."""
+    (a type, or a string under ``from __future__ import annotations``); None when the annotation holds
+    anything else (a value of that field is then not checked)."""
     ann = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
     ann = ann.replace(" ", "")
     opt = re.fullmatch(r"(?:typing\.)?Optional\[(.+)\]", ann)

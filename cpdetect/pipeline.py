@@ -873,15 +873,27 @@ def load_surveyed(path: Path, crs: Optional[str]) -> Surveyed:
 
     ``crs``: the CRS of the coordinates when the file does not name one (None: plain Cartesian metres).
     """
-    names, xyz, file_crs = _read_points(Path(path))
-    crs_text = file_crs or crs
     from geometry.crs import CRSInputError, LocalFrame, crs_from_user
 
+    if crs is not None:
+        # a bad --crs is the option's fault, not the file's: check it before reading the file, even
+        # when the file names its own CRS (which then wins)
+        try:
+            option_crs = crs_from_user(crs)
+        except CRSInputError as exc:
+            raise UsageError(f"--crs: {exc}") from None
+    names, xyz, file_crs = _read_points(Path(path))
+    crs_text = file_crs or crs
     try:
-        frame = LocalFrame.from_points(xyz, None if crs_text is None else crs_from_user(crs_text))
+        user_crs = None if crs_text is None else (crs_from_user(file_crs) if file_crs else option_crs)
+    except CRSInputError as exc:
+        raise InputError(f"the CRS it names: {exc}", path) from None
+    try:
+        frame = LocalFrame.from_points(xyz, user_crs)
         local = frame.to_local(xyz)
     except CRSInputError as exc:
-        raise InputError(str(exc), path) from None
+        where = "from the file" if file_crs else f"given by --crs {crs!r}"
+        raise InputError(f"{exc} (CRS {where})", path) from None
     return Surveyed(names, xyz, np.asarray(local, float), None if crs_text is None else str(crs_text), frame)
 
 

@@ -396,7 +396,7 @@ def test_georef_inputs(cli, site, case):
         images = site / "noimages"
         named = [images, "not found"]
     elif case == "unknown EPSG":
-        extra, named = ["--crs", "EPSG:999999"], ["EPSG:999999"]
+        extra, named = ["--crs", "EPSG:999999"], ["--crs", "EPSG:999999"]
     elif case == "two surveyed points":
         gcps.write_text("name,x,y,z\nA,0,0,0\nB,1,0,0\n")
         named = [gcps, "need at least 3"]
@@ -405,7 +405,17 @@ def test_georef_inputs(cli, site, case):
     out = site / "out"
     res = cli("-q", "georef", "--reconstruction", model, "--images", images, "--gcps", gcps, "--out", out, *extra)
     assert_one_line_error(res, *named)
+    if case == "unknown EPSG":  # the option is at fault, not the surveyed points file
+        assert str(gcps) not in res.err[0]
     assert not out.exists()
+
+
+def test_compare_blames_a_bad_crs_on_the_option(cli, site):
+    _colmap_text(site / "sparse", [f"{i:04d}.jpg" for i in range(4)])
+    out = site / "report"
+    res = cli("-q", "compare", site, "--detectors", "classical", "--crs", "EPSG:999999", "--out", out)
+    assert_one_line_error(res, "--crs", "EPSG:999999")
+    assert str(site / "gcps.csv") not in res.err[0] and not out.exists()
 
 
 def test_georef_ignores_registered_images_missing_from_the_folder(cli, site):
