@@ -59,18 +59,11 @@ def split_settings(pairs: list[str], names: list[str]) -> dict[str, dict]:
     return out
 
 
-def _progress():
-    try:
-        from tqdm import tqdm
-    except ModuleNotFoundError:  # pragma: no cover
-        return lambda it, **kw: it
-    return lambda it, **kw: tqdm(it, file=sys.stderr, leave=False, disable=None, **kw)
-
-
 def run(args) -> int:
     from .. import compare as cmp_mod
     from ..compare_report import write_outputs
     from ..detector import check_settings, get_detector
+    from ..progress import iter_progress
 
     names = cmp_mod.parse_detector_names(args.detectors)
     settings = split_settings(args.set, names)
@@ -85,7 +78,7 @@ def run(args) -> int:
 
         dataset = load_dataset(args.input)
         detectors = {n: get_detector(n, **settings[n]) for n in names}
-        result = cmp_mod.compare_dataset(dataset, detectors, limit=args.limit, progress=_progress())
+        result = cmp_mod.compare_dataset(dataset, detectors, limit=args.limit, progress=iter_progress())
     else:
         from ..pipeline import GeorefSettings
 
@@ -95,7 +88,7 @@ def run(args) -> int:
         for n in names:  # fail on a bad setting or a detector that cannot load before any long run
             get_detector(n, **settings[n])
         result = cmp_mod.compare_site(inputs, names, args.out, settings,
-                                      GeorefSettings(mode=args.mode, seed=args.seed), progress=_progress())
+                                      GeorefSettings(mode=args.mode, seed=args.seed), progress=iter_progress())
     paths = write_outputs(result, args.out, gallery=not args.no_gallery)
     rec = result.recommendation
     print(f"recommendation: {rec.choice or 'none'}" + (" (insufficient evidence)" if rec.insufficient else ""))

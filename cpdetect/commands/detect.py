@@ -24,20 +24,19 @@ def register(sub) -> None:
 def run(args) -> int:
     import logging
 
-    from tqdm import tqdm
-
     from ..batch import collect_jobs, detect_batch
     from ..detector import get_detector, parse_settings
     from ..errors import UsageError
+    from ..progress import counter
 
     if args.workers < 1:
         raise UsageError("--workers must be >= 1")
     settings = parse_settings(args.settings)
     get_detector(args.detector, **settings)  # fail early on an unknown detector, setting or its type
     jobs = collect_jobs(args.inputs)
-    with tqdm(total=len(jobs), unit="img", disable=None, leave=False) as bar:
+    with counter(len(jobs), unit="img") as update:
         doc = detect_batch(jobs, args.detector, settings, args.out, workers=args.workers, skip_bad=args.skip_bad,
-                           progress=lambda k, _n: bar.update(k - bar.n), scheduler=args.scheduler or None)
+                           progress=update, scheduler=args.scheduler or None)
     n_det = sum(len(im.get("detections", [])) for im in doc["images"])
     n_bad = sum(1 for im in doc["images"] if "error" in im)
     logging.getLogger("cpdetect").info("%d images, %d detections%s -> %s", len(doc["images"]), n_det,

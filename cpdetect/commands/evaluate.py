@@ -21,21 +21,20 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from tqdm import tqdm
-
     from ..dataset import load_dataset
     from ..detector import get_detector, parse_settings
     from ..errors import UsageError
     from ..evaluate import evaluate, format_table
     from ..fileio import write_json_atomic
+    from ..progress import counter
 
     if args.limit is not None and args.limit < 1:
         raise UsageError("--limit must be >= 1")
     dataset = load_dataset(args.dataset)
     detector = get_detector(args.detector, **parse_settings(args.settings))
     n = len(dataset.images) if args.limit is None else min(args.limit, len(dataset.images))
-    with tqdm(total=n, unit="img", disable=None, leave=False) as bar:
-        metrics = evaluate(dataset, detector, limit=args.limit, progress=lambda k, _n: bar.update(k - bar.n))
+    with counter(n, unit="img") as update:
+        metrics = evaluate(dataset, detector, limit=args.limit, progress=update)
     metrics["detector"] = args.detector
     metrics["settings"] = parse_settings(args.settings)
     print(format_table(metrics))

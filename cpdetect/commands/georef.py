@@ -40,6 +40,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from ..detector import check_settings, parse_settings
     from ..pipeline import GeorefInputs, GeorefSettings, run_georef
+    from ..progress import iter_progress
 
     detector_settings = parse_settings(args.set)
     if args.detections is None:  # the detector is built late: a mistyped --set must fail before any work
@@ -50,17 +51,9 @@ def run(args) -> int:
     inputs = GeorefInputs(reconstruction=args.reconstruction, images=args.images, gcps=args.gcps, out=args.out,
                           crs=args.crs, cloud=args.cloud, mesh=args.mesh,
                           detections=args.detections)
-    report = run_georef(inputs, settings, progress=_progress())
+    report = run_georef(inputs, settings, progress=iter_progress())
     print_summary(report, sys.stdout)
     return 0 if report["status"] == "ok" else 1
-
-
-def _progress():
-    try:
-        from tqdm import tqdm
-    except ModuleNotFoundError:  # pragma: no cover
-        return lambda it, **kw: it
-    return lambda it, **kw: tqdm(it, file=sys.stderr, leave=False, **kw)
 
 
 def print_summary(report: dict, fh) -> None:

@@ -61,12 +61,11 @@ def run(args) -> int:
                                 radius_min_px=args.radius_min)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    from tqdm import tqdm
+    from ..progress import counter
 
     t0 = time.perf_counter()
-    with tqdm(total=args.n, unit="img", disable=None, leave=False) as bar:
-        path = write_synth_images(args.out, args.n, args.seed, opt, workers=args.workers,
-                                  progress=lambda k: bar.update(k - bar.n))
+    with counter(args.n, unit="img") as update:
+        path = write_synth_images(args.out, args.n, args.seed, opt, workers=args.workers, progress=update)
     dt = time.perf_counter() - t0
     log.info("wrote %d images to %s in %.1f s (%.1f images/s); truth in %s", args.n, args.out, dt,
              args.n / dt if dt > 0 else float("inf"), path)

@@ -64,17 +64,10 @@ def run(args) -> int:
                             survey_sigma=args.survey_sigma, cloud_spacing=args.cloud_spacing,
                             supersample=args.supersample, backgrounds=args.backgrounds)
     settings.check()
-    from tqdm import tqdm
+    from ..progress import counter
 
-    bar = tqdm(total=settings.n_images, unit="img", desc="rendering", disable=None, leave=False)
-
-    def progress(done: int, total: int) -> None:
-        bar.update(done - bar.n)
-
-    try:
-        report = write_site(args.out, settings, overwrite=args.overwrite, progress=progress)
-    finally:
-        bar.close()
+    with counter(settings.n_images, unit="img", desc="rendering") as update:
+        report = write_site(args.out, settings, overwrite=args.overwrite, progress=update)
     secs = report.seconds
     log.info("wrote %s: %d images, %d dense points, marker views %s; %.1f s (build %.1f, render %.1f, "
              "cloud/mesh/sparse %.1f)", report.out_dir, report.n_images, report.n_cloud_points,
