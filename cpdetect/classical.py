@@ -469,66 +469,50 @@ class _Verifier:
         sec, f = self.sector_of(core["bounds"], core["widths"])
         inner = (f > 0.12) & (f < 0.88)
         # rough extent from the geometric rings, for either polarity
-        best = None
+        rough = []
         for pol_dark in (True, False):
             rays = inner & (core["dark"][sec] == pol_dark)
             b, st = self.ray_boundaries(core["P"], core["radii"], core["core_end"] // 2 + 1, pol_dark,
                                         D if pol_dark else B, C)
+            # rays that leave the image before their boundary count neither way (markers cut by the
+            # image border), but at least 40 % of all rays must find it
+            lost = np.isnan(b) & np.isnan(core["P"][core["core_end"] // 2 + 1:]).any(0)
+            found = int((rays & np.isfinite(b)).sum())
+            frac = found / max(int((rays & ~lost).sum()), 1) if found >= 0.4 * rays.sum() else 0.0
             b, st = b[rays], st[rays]
-            frac = np.mean(np.isfinite(b)) if b.size else 0.0
             strength = frac * (np.nanmedian(st) if np.isfinite(st).any() else 0.0)
-            if best is None or strength > best[0]:
-                best = (strength, pol_dark, b, frac)
-        _, pol_dark, b, frac = best
-        if frac < 0.75:
-            return "marker boundary not found"
-        r0 = float(np.sqrt(np.nanmean(b ** 2)))  # rough: rms boundary distance of one polarity
-        if r0 < 0.6 * self.s.min_radius_px or r0 > 1.5 * self.max_radius:
-            return "size out of range"
-        # precise pass: linear rings 0.25 r0 .. 2.2 r0
-        n_r = 72
-        radii = np.linspace(0.25 * r0, 2.2 * r0, n_r)
-        step = radii[1] - radii[0]
-        P = self.polar(x, y, radii, np.full(n_r, max(step, 1.0)))
-        rays = inner & (core["dark"][sec] == pol_dark)
-        bnd, _ = self.ray_boundaries(P, radii, 1, pol_dark, D if pol_dark else B, C)
-        ok = rays & np.isfinite(bnd)
-        if ok.sum() < 0.9 * rays.sum():
-            return "marker boundary not found (fine pass)"
-        # outline model per sector of the boundary polarity
-        pts_by_sector = {}
-        for k in np.nonzero(core["dark"] == pol_dark)[0]:
-            m = ok & (sec == k)
-            order = np.argsort(f[m])
-            js = np.nonzero(m)[0][order]
-            pts = np.stack([x + bnd[js] * self.cos[js], y + bnd[js] * self.sin[js]], 1)
-            if len(pts) < 6:
-                return "too few boundary points"
-            pts_by_sector[k] = pts
-        all_pts = np.concatenate(list(pts_by_sector.values()))
-        e1 = [_line_fit(p) for p in pts_by_sector.values()]
-        e2 = [_two_line_fit(p) for p in pts_by_sector.values()]
-        e_line = math.sqrt(np.mean([e[1] ** 2 for e in e1]))
-        e_two = math.sqrt(np.mean([e[0] ** 2 for e in e2]))
-        e_ell, ell = _ellipse_residual(all_pts)
-        floor = 0.12 + 0.01 * r0
-        if e_line <= max(2.0 * e_two, floor) and e_line < 0.05 * r0:
-            mtype = "diagonal"
-        elif e_two < e_ell:
-            mtype = "square"
-        else:
-            mtype = "circle"
-        e_model = {"diagonal": e_line, "square": e_two, "circle": e_ell}[mtype]
-        if not e_model < 0.1 * r0 + 0.2:
-            return f"outline does not fit ({mtype})"
-        outline = self.outline(mtype, x, y, core, pol_dark, e1, e2, ell)
+            rough.append((strength, pol_dark, b, frac))
+        # the stronger polarity first; the other when the first fails or fits poorly (a sector on a
+        # background of its own level has no boundary, and the ray runs on to some far edge)
+        rough.sort(key=lambda t: -t[0])
+        fits: list = []
+        for strength, pol_dark, b, frac in rough:
+            if frac < 0.75:
+                fits.append("marker boundary not found")
+                continue
+            r0 = float(np.sqrt(np.nanmean(b ** 2)))  # rough: rms boundary distance of one polarity
+            if r0 < 0.6 * self.s.min_radius_px or r0 > 1.5 * self.max_radius:
+                fits.append("size out of range")
+                continue
+            fits.append(self._fit_outline(x, y, core, sec, f, inner, pol_dark, r0))
+            if isinstance(fits[-1], dict) and fits[-1]["e_rel"] < 0.03:
+                break
+        good = [t for t in fits if isinstance(t, dict)]
+        if not good:
+            return fits[0]
+        outline = None
+        for fit in sorted(good, key=lambda t: t["e_rel"]):
+            outline = self.outline(fit["mtype"], x, y, core, fit["pol_dark"], fit["e1"], fit["e2"], fit["ell"])
+            if outline is not None and self._encloses(outline, x, y):
+                break
+            outline = None
         hull_fallback = 0.0
-        if outline is None or not self._encloses(outline, x, y):
-            # the model's corners are unreliable (strong tilt, occlusion): fall back to the hull of
-            # the boundary points and their reflection through the centre
-            # (a hull of the boundary points would do as an outline, but on generated train images
-            # it admitted more false markers than markers: rejected until the score model learns it)
+        if outline is None:
+            # the model's corners are unreliable (strong tilt, occlusion)
+            # (a hull of the boundary points and their reflection through the centre would do as an
+            # outline, but on generated train images it admitted more false markers than markers)
             return "outline degenerate"
+        mtype, e_model, r0, ok, rays = fit["mtype"], fit["e_model"], fit["r0"], fit["ok"], fit["rays"]
         area = 0.5 * abs(np.dot(outline[:, 0], np.roll(outline[:, 1], -1))
                          - np.dot(outline[:, 1], np.roll(outline[:, 0], -1)))
         radius = math.sqrt(area / math.pi)
@@ -545,6 +529,65 @@ class _Verifier:
         self.last_features = feats
         score = marker_score(feats)
         return _Verified(x, y, mtype, radius, score, outline, (D, B))
+
+    def _fit_outline(self, x, y, core, sec, f, inner, pol_dark: bool, r0: float) -> dict | str:
+        """Boundary points of the sectors of one polarity on fine rings (0.25 .. 2.2 r0), jumps
+        dropped, and the three outline models fitted to them; a dict, or the reason string."""
+        D, B, C = core["D"], core["B"], core["C"]
+        n_r = 72
+        radii = np.linspace(0.25 * r0, 2.2 * r0, n_r)
+        step = radii[1] - radii[0]
+        P = self.polar(x, y, radii, np.full(n_r, max(step, 1.0)))
+        rays = inner & (core["dark"][sec] == pol_dark)
+        bnd, _ = self.ray_boundaries(P, radii, 1, pol_dark, D if pol_dark else B, C)
+        ok = rays & np.isfinite(bnd)
+        # along a sector the boundary distance changes smoothly with the angle: a ray far from the
+        # running median of its neighbours met something else (background edge, occluder)
+        for k in np.nonzero(core["dark"] == pol_dark)[0]:
+            js = np.nonzero(ok & (sec == k))[0]
+            js = js[np.argsort(f[js])]
+            if len(js) < 5:
+                continue
+            b = bnd[js]
+            pad = np.concatenate([np.full(3, np.nan), b, np.full(3, np.nan)])
+            med = np.nanmedian(np.lib.stride_tricks.sliding_window_view(pad, 7), axis=1)
+            ok[js[np.abs(b - med) > 0.1 * med + 1.0]] = False
+        lost = rays & np.isnan(bnd) & np.isnan(P[1:]).any(0)
+        if ok.sum() < 0.8 * (rays & ~lost).sum() or ok.sum() < 0.4 * rays.sum():
+            return "marker boundary not found (fine pass)"
+        # outline model per sector of the boundary polarity
+        pts_by_sector = {}
+        for k in np.nonzero(core["dark"] == pol_dark)[0]:
+            m = ok & (sec == k)
+            order = np.argsort(f[m])
+            js = np.nonzero(m)[0][order]
+            pts_by_sector[k] = np.stack([x + bnd[js] * self.cos[js], y + bnd[js] * self.sin[js]], 1)
+        k1, k2 = pts_by_sector
+        for ka, kb in ((k1, k2), (k2, k1)):
+            # a sector outside the image: its opposite one reflected through the centre stands in
+            # (the pattern is point symmetric to first order)
+            if len(pts_by_sector[ka]) < 6 and (lost & (sec == ka)).sum() > 0.5 * (rays & (sec == ka)).sum():
+                pts_by_sector[ka] = 2.0 * np.array([x, y]) - pts_by_sector[kb]
+        if min(len(p) for p in pts_by_sector.values()) < 6:
+            return "too few boundary points"
+        all_pts = np.concatenate(list(pts_by_sector.values()))
+        e1 = [_line_fit(p) for p in pts_by_sector.values()]
+        e2 = [_two_line_fit(p) for p in pts_by_sector.values()]
+        e_line = math.sqrt(np.mean([e[1] ** 2 for e in e1]))
+        e_two = math.sqrt(np.mean([e[0] ** 2 for e in e2]))
+        e_ell, ell = _ellipse_residual(all_pts)
+        floor = 0.12 + 0.01 * r0
+        if e_line <= max(2.0 * e_two, floor) and e_line < 0.05 * r0:
+            mtype = "diagonal"
+        elif e_two < e_ell:
+            mtype = "square"
+        else:
+            mtype = "circle"
+        e_model = {"diagonal": e_line, "square": e_two, "circle": e_ell}[mtype]
+        if not e_model < 0.1 * r0 + 0.2:
+            return f"outline does not fit ({mtype})"
+        return dict(mtype=mtype, pol_dark=pol_dark, e1=e1, e2=e2, ell=ell, e_model=e_model, r0=r0, ok=ok,
+                    rays=rays & ~lost, e_rel=e_model / r0)
 
     @staticmethod
     def _encloses(poly: np.ndarray, x: float, y: float) -> bool:
