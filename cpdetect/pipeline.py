@@ -38,6 +38,7 @@ import json
 import logging
 import math
 import re
+import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -276,20 +277,104 @@ def _estimate_normals(points: np.ndarray, radius: float) -> np.ndarray:
 # Stage 1: detect
 
 
+class _DetectImage:
+    """The per-image task of the detect stage: ``task((name, path)) -> {"data": record, "probability":
+    float16 array or None}`` (the map already reduced to ``prob_max_side``), or ``{"fatal": message}``
+    for a :class:`~cpdetect.errors.CpdetectError` (so that every executor stops with the one-line message).
+
+    The same task runs in this process (serial) and in worker processes or on Dask workers, so the results
+    are identical whatever the executor (but for the ``seconds`` timings). It carries the detector's
+    factory (pickled by reference: a module-level class or function) and settings, not a built
+    detector: in this process the detector is built once per run, in a worker once per process and
+    thread (:func:`_worker_detector`).
+    """
+
+    def __init__(self, name: str, factory: Callable, settings: dict, prob_max_side: int):
+        self.name, self.factory, self.settings = name, factory, dict(settings)
+        self.prob_max_side = int(prob_max_side)
+        self._detector = None
+
+    def __getstate__(self) -> dict:
+        return dict(self.__dict__, _detector=None, _remote=True)
+
+    def detector(self):
+        if self._detector is None:
+            if getattr(self, "_remote", False):
+                self._detector = _worker_detector(self.name, self.factory, self.settings)
+            else:
+                self._detector = _build_detector(self.name, self.factory, self.settings)
+        return self._detector
+
+    def __call__(self, item: tuple[str, str]) -> dict:
+        from .errors import CpdetectError
+        from .imageio import read_image
+
+        name, path = item
+        try:
+            img = read_image(path)
+            t0 = time.perf_counter()
+            res = self.detector().detect(img)
+            seconds = time.perf_counter() - t0
+        except CpdetectError as exc:
+            return {"fatal": str(exc), "usage": isinstance(exc, UsageError)}
+        h, w = img.shape[:2]
+        prob = None
+        if res.probability is not None:
+            import cv2
+
+            prob = np.asarray(res.probability, np.float32)
+            s = min(1.0, self.prob_max_side / max(prob.shape))
+            if s < 1.0:
+                prob = cv2.resize(prob, (max(1, round(prob.shape[1] * s)), max(1, round(prob.shape[0] * s))),
+                                  interpolation=cv2.INTER_AREA)
+            prob = prob.astype(np.float16)
+        data = {"width": int(w), "height": int(h), "seconds": round(seconds, 3),
+                "detections": [d.to_dict() for d in res.detections]}
+        return {"name": name, "data": data, "probability": prob}
+
+
+# detectors built in a worker process or thread, by (factory, settings): built once per worker, not once
+# per image; thread-local because a Dask worker may run tasks in several threads
+_WORKER = threading.local()
+
+
+def _worker_detector(name: str, factory: Callable, settings: dict):
+    cache = getattr(_WORKER, "detectors", None)
+    if cache is None:
+        cache = _WORKER.detectors = {}
+    key = (getattr(factory, "__module__", ""), getattr(factory, "__qualname__", repr(factory)),
+           json.dumps(settings, sort_keys=True, default=str))
+    if key not in cache:
+        cache[key] = _build_detector(name, factory, settings)
+    return cache[key]
+
+
+def _build_detector(name: str, factory: Callable, settings: dict):
+    """``factory(**settings)`` with :func:`cpdetect.detector.get_detector`'s one-line errors."""
+    try:
+        return factory(**settings)
+    except (TypeError, ValueError) as exc:
+        raise UsageError(f"detector {name!r}: {exc}") from None
+
+
 def stage_detect(store: StageStore, scene, image_paths: dict[str, Path], settings: GeorefSettings,
-                 progress: Callable = lambda it, **kw: it) -> tuple[dict, str]:
-    """Detections per image: {name: {"width", "height", "detections": [...], "probability": file|None}}."""
-    from .detector import get_detector
-    from .imageio import read_image
+                 progress: Callable = lambda it, **kw: it, workers: int = 1, scheduler: Any = None
+                 ) -> tuple[dict, str]:
+    """Detections per image: {name: {"width", "height", "detections": [...], "probability": file|None}}.
+
+    Images whose cached record (``stages/detect/``) matches are not detected again; the others run on
+    ``workers`` local processes, or a Dask cluster when ``scheduler`` (an address or a
+    ``distributed.Client``; every worker must see the images at the same path) is given, else in this
+    process; the records are identical whichever runs them (but for the timings).
+    """
+    from .detector import check_settings, resolve_factory
+    from .executors import SerialExecutor, make_executor
 
     det_key = [settings.detector, settings.detector_settings, settings.prob_max_side, _detector_code_key(settings.detector)]
-    detector = None
     per_image: dict[str, dict] = {}
-    keys = []
-    for name in progress(list(image_paths), desc="detect", unit="image"):
-        path = image_paths[name]
-        key = _hash([STAGE_FORMAT, "detect-image", det_key, name, _file_key(path)])
-        keys.append(key)
+    keys, todo = {}, []
+    for name, path in image_paths.items():
+        key = keys[name] = _hash([STAGE_FORMAT, "detect-image", det_key, name, _file_key(path)])
         cache = store.dir / "detect" / f"{_safe_name(name)}.json"
         if cache.exists():
             try:
@@ -299,31 +384,43 @@ def stage_detect(store: StageStore, scene, image_paths: dict[str, Path], setting
                     continue
             except (InputError, AttributeError, KeyError):
                 pass
-        if detector is None:
-            detector = get_detector(settings.detector, **settings.detector_settings)
-        img = read_image(path)
-        t0 = time.perf_counter()
-        res = detector.detect(img)
-        h, w = img.shape[:2]
-        prob_file = None
-        if res.probability is not None:
-            import cv2
+        todo.append((name, str(Path(path).resolve())))
+    if todo:
+        check_settings(settings.detector, settings.detector_settings)
+        task = _DetectImage(settings.detector, resolve_factory(settings.detector), settings.detector_settings,
+                            settings.prob_max_side)
+        ex = make_executor(workers if len(todo) > 1 else 1, scheduler)
+        try:
+            if not isinstance(ex, SerialExecutor):
+                _check_picklable(task, settings.detector)
+            for rec in progress(ex.imap(task, todo), desc="detect", unit="image", total=len(todo)):
+                if "fatal" in rec:  # the message names the image file
+                    raise (UsageError if rec["usage"] else InputError)(rec["fatal"])
+                name, data = rec["name"], rec["data"]
+                data["probability"] = None
+                if rec["probability"] is not None:
+                    data["probability"] = f"prob/{_safe_name(name)}.npy"
+                    with atomic_path(store.dir / data["probability"]) as tmp:
+                        with open(tmp, "wb") as fh:
+                            np.save(fh, rec["probability"])
+                write_json_atomic(store.dir / "detect" / f"{_safe_name(name)}.json",
+                                  {"format": STAGE_FORMAT, "key": keys[name], "data": data})
+                per_image[name] = data
+        finally:
+            ex.close()
+    per_image = {name: per_image[name] for name in image_paths}  # the images' order, however they ran
+    return store.run("detect", [keys[n] for n in image_paths], lambda: per_image)
 
-            p = np.asarray(res.probability, np.float32)
-            s = min(1.0, settings.prob_max_side / max(p.shape))
-            if s < 1.0:
-                p = cv2.resize(p, (max(1, round(p.shape[1] * s)), max(1, round(p.shape[0] * s))),
-                               interpolation=cv2.INTER_AREA)
-            prob_file = f"prob/{_safe_name(name)}.npy"
-            with atomic_path(store.dir / prob_file) as tmp:
-                with open(tmp, "wb") as fh:
-                    np.save(fh, p.astype(np.float16))
-        data = {"width": int(w), "height": int(h), "seconds": round(time.perf_counter() - t0, 3),
-                "detections": [d.to_dict() for d in res.detections], "probability": prob_file}
-        write_json_atomic(cache, {"format": STAGE_FORMAT, "key": key, "data": data})
-        per_image[name] = data
-    data, key = store.run("detect", keys, lambda: per_image)
-    return data, key
+
+def _check_picklable(task: _DetectImage, name: str) -> None:
+    """Worker processes get the detector's factory by reference: a lambda or a local class cannot go."""
+    import pickle
+
+    try:
+        pickle.dumps(task)
+    except Exception as exc:  # pickle raises several types (PicklingError, AttributeError, TypeError)
+        raise UsageError(f"detector {name!r} cannot run in worker processes (its factory cannot be "
+                         f"pickled: {type(exc).__name__}); run with --workers 1") from None
 
 
 def load_detections_json(path: Path, image_paths: dict[str, Path]) -> dict:
@@ -1064,8 +1161,12 @@ def export(report: dict, out: Path, surveyed: Surveyed, scene) -> None:
 
 
 def run_georef(inputs: GeorefInputs, settings: GeorefSettings = GeorefSettings(),
-               progress: Callable = lambda it, **kw: it) -> dict:
-    """Run (or resume) every stage and export; returns the report (also in ``inputs.out/report.json``)."""
+               progress: Callable = lambda it, **kw: it, workers: int = 1, scheduler: Any = None) -> dict:
+    """Run (or resume) every stage and export; returns the report (also in ``inputs.out/report.json``).
+
+    ``workers`` / ``scheduler``: where the detect stage runs (see :func:`stage_detect`; the results do
+    not depend on it, so neither do the stage keys).
+    """
     t0 = time.perf_counter()
     out = Path(inputs.out)
     store = StageStore(out)
@@ -1084,7 +1185,7 @@ def run_georef(inputs: GeorefInputs, settings: GeorefSettings = GeorefSettings()
         k1 = _hash(["detections-file", _file_key(Path(inputs.detections)),
                     [(n, _file_key(p)) for n, p in image_paths.items()]])  # refine reads the images
     else:
-        per_image, k1 = stage_detect(store, scene, image_paths, settings, progress)
+        per_image, k1 = stage_detect(store, scene, image_paths, settings, progress, workers, scheduler)
     k1 = _hash([k1, recon_key])
     write_detections_json(out / "detections.json", settings.detector, per_image)
     localized, k2 = stage_localize(store, scene, per_image, settings, inputs, k1, progress)

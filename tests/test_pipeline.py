@@ -6,6 +6,7 @@ detections (20 %) and false detections (2 per image), written as a ``cpdetect.de
 this tests the 3D back end on its own, whatever the state of the detectors.
 """
 import json
+import os
 
 import numpy as np
 import pytest
@@ -204,3 +205,83 @@ def test_no_detections_gives_a_failed_report_not_a_crash(site, tmp_path):
     assert rc == 1 and report["status"] == "failed" and report["n_markers"] == 0
     assert "no detection" in report["reason"]
     assert not (tmp_path / "o" / "gcp_list.txt").exists()
+
+
+class _TruthFileDetector:
+    """A stand-in detector, importable by worker processes: the true marker projections of a synthetic
+    site (``truth``: its truth.json, images looked up by their pixels) and a probability map of discs at
+    quarter resolution."""
+
+    name = "truthfile"
+
+    def __init__(self, truth: str):
+        import hashlib
+
+        from cpdetect.imageio import read_image
+
+        with open(truth) as fh:
+            doc = json.load(fh)
+        folder = os.path.join(os.path.dirname(truth), "images")
+        self.by_pixels = {hashlib.sha1(read_image(os.path.join(folder, im["name"])).tobytes()).hexdigest():
+                          im["markers"] for im in doc["images"]}
+
+    def detect(self, image):
+        import hashlib
+
+        from cpdetect.types import DetectionResult, MarkerDetection
+
+        markers = self.by_pixels[hashlib.sha1(image.tobytes()).hexdigest()]
+        h, w = image.shape[:2]
+        yy, xx = np.mgrid[0:h // 4, 0:w // 4]
+        prob = np.zeros((h // 4, w // 4), np.float32)
+        for m in markers:
+            prob[(xx - m["x"] / 4) ** 2 + (yy - m["y"] / 4) ** 2 <= (m["radius_px"] / 4) ** 2] = 1.0
+        dets = [MarkerDetection(m["x"], m["y"], 0.9, m["type"], m["radius_px"], 0.5) for m in markers]
+        return DetectionResult(dets, (w, h), probability=prob)
+
+
+def test_detect_stage_on_worker_processes_gives_the_serial_results(site, monkeypatch):
+    from cpdetect import detector as registry
+
+    root, truth = site
+    s = root / "site"
+    monkeypatch.setitem(registry._REGISTERED, "truthfile", _TruthFileDetector)
+
+    def georef(out, *extra):
+        return main(["-q", "georef", "--reconstruction", str(s / "sparse"), "--images", str(s / "images"),
+                     "--gcps", str(s / "gcps.csv"), "--crs", "EPSG:25832", "--mesh", str(s / "mesh.ply"),
+                     "--detector", "truthfile", "--set", f"truth={s / 'truth.json'}", "--out", str(out), *extra])
+
+    serial, pooled = root / "out_serial", root / "out_workers"
+    assert georef(serial) == 0 and georef(pooled, "--workers", "2") == 0
+
+    def detect_stage(out):
+        data = json.loads((out / "stages" / "detect.json").read_text())["data"]
+        return {n: {k: v for k, v in d.items() if k != "seconds"} for n, d in data.items()}
+
+    a, b = detect_stage(serial), detect_stage(pooled)
+    assert list(a) == list(b) == sorted(im["name"] for im in truth["images"]) and a == b
+    assert sum(len(d["detections"]) for d in a.values()) > 16
+    for d in a.values():
+        assert (serial / "stages" / d["probability"]).read_bytes() == (pooled / "stages" / d["probability"]).read_bytes()
+    ra, rb = (json.loads((o / "report.json").read_text()) for o in (serial, pooled))
+    assert ra["status"] == "ok" and ra["markers"] == rb["markers"]
+    # where the detection ran is not part of any stage key: a serial rerun resumes the pooled run
+    assert georef(pooled) == 0
+    assert json.loads((pooled / "report.json").read_text())["stages"]["ran"] == []
+
+
+def test_georef_workers_must_be_positive_and_lambdas_cannot_go_to_workers(site, monkeypatch, capsys):
+    from cpdetect import detector as registry
+
+    root, _ = site
+    s = root / "site"
+    base = ["georef", "--reconstruction", str(s / "sparse"), "--images", str(s / "images"), "--gcps",
+            str(s / "gcps.csv"), "--crs", "EPSG:25832", "--out", str(root / "out_bad_workers")]
+    assert main(base + ["--workers", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--workers" in err[0]
+    monkeypatch.setitem(registry._REGISTERED, "local", lambda: None)
+    assert main(base + ["--detector", "local", "--workers", "2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "'local' cannot run in worker processes" in err[0]

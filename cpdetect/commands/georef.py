@@ -23,6 +23,11 @@ def register(sub) -> None:
                         "running the detector")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="detector setting (repeatable)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="worker processes of the detect stage (results identical to serial)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run the detect stage on a Dask cluster (pip install 'cpdetect[dask]'), e.g. "
+                        "tcp://host:8786; every worker must see the images at the same path. Overrides --workers")
     p.add_argument("--mode", default="auto", choices=["auto", "cloud", "ray", "triangulate"],
                    help="how markers are first placed in 3D: cloud colorization + DBSCAN, ray casting of "
                         "detections onto the mesh, or triangulation of detection pairs (default auto: cloud "
@@ -39,9 +44,12 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from ..detector import check_settings, parse_settings
+    from ..errors import UsageError
     from ..pipeline import GeorefInputs, GeorefSettings, run_georef
     from ..progress import iter_progress
 
+    if args.workers < 1:
+        raise UsageError("--workers must be >= 1")
     detector_settings = parse_settings(args.set)
     if args.detections is None:  # the detector is built late: a mistyped --set must fail before any work
         check_settings(args.detector, detector_settings)
@@ -51,7 +59,8 @@ def run(args) -> int:
     inputs = GeorefInputs(reconstruction=args.reconstruction, images=args.images, gcps=args.gcps, out=args.out,
                           crs=args.crs, cloud=args.cloud, mesh=args.mesh,
                           detections=args.detections)
-    report = run_georef(inputs, settings, progress=iter_progress())
+    report = run_georef(inputs, settings, progress=iter_progress(), workers=args.workers,
+                        scheduler=args.scheduler or None)
     print_summary(report, sys.stdout)
     return 0 if report["status"] == "ok" else 1
 
