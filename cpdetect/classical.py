@@ -325,7 +325,11 @@ class _Verifier:
                 ref = phi[0]
             i = end + 1
             while core_open and i < n:
-                if not valid_ring[i] or q[i] < 0.55 or abs(_wrap(phi[i] - ref)) > math.radians(25):
+                # the core also ends where the pattern fades (q well below its best so far) or its
+                # amplitude drops (the rings have left the marker: a background that happens to be
+                # darker beside the dark sectors would otherwise extend it)
+                if (not valid_ring[i] or q[i] < max(0.55, 0.8 * q[:i].max())
+                        or std[i] < 0.55 * std[:i].max() or abs(_wrap(phi[i] - ref)) > math.radians(25)):
                     core_open = False
                     break
                 end = i
