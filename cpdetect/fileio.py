@@ -58,20 +58,55 @@ def write_json_atomic(path: str | os.PathLike, obj: Any, indent: int | None = 1)
     write_text_atomic(path, json.dumps(obj, indent=indent, allow_nan=False) + "\n")
 
 
-def read_json(path: str | os.PathLike, what: str = "JSON file") -> Any:
-    """Read a JSON file, turning every failure into a one-line :class:`InputError`."""
+def read_text_utf8(path: str | os.PathLike, what: str = "file") -> str:
+    """Read a UTF-8 text file, turning every failure (missing, a folder, unreadable, not UTF-8) into a
+    one-line :class:`InputError` naming ``path``."""
     path = Path(path)
     if not path.exists():
         raise InputError(f"{what} not found", path)
     if path.is_dir():
         raise InputError(f"expected a {what}, found a folder", path)
     try:
-        text = path.read_bytes().decode("utf-8")
+        return path.read_bytes().decode("utf-8")
     except UnicodeDecodeError as exc:
         raise InputError(f"not UTF-8 text (byte {exc.start})", path) from None
     except OSError as exc:
         raise InputError(f"cannot read: {exc.strerror or exc}", path) from None
+
+
+def read_json(path: str | os.PathLike, what: str = "JSON file") -> Any:
+    """Read a JSON file, turning every failure into a one-line :class:`InputError`."""
+    text = read_text_utf8(path, what)
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputError(f"not valid JSON: {exc.msg}", path, exc.lineno) from None
+
+
+@contextmanager
+def staged_outputs(folder: str | os.PathLike, stale: tuple[str, ...] = ()) -> Iterator[Path]:
+    """Write a set of outputs together: yield a temporary folder inside ``folder``; when the block ends
+    normally, move every file written there onto ``folder`` (each move atomic, replacing a previous
+    file) and delete the names in ``stale`` that were not rewritten; when it raises, delete the
+    temporary folder: ``folder`` keeps exactly what it had, no output is half-written and none is from
+    this run while another is from the previous one.
+    """
+    import shutil
+
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=".staged-", dir=folder))
+    except OSError as exc:
+        raise InputError(f"cannot write here: {exc.strerror or exc}", folder) from None
+    try:
+        yield tmp
+        written = sorted(p.relative_to(tmp) for p in tmp.rglob("*") if p.is_file())
+        for rel in written:
+            (folder / rel).parent.mkdir(parents=True, exist_ok=True)
+            os.replace(tmp / rel, folder / rel)
+        for name in stale:
+            if Path(name) not in written:
+                (folder / name).unlink(missing_ok=True)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

@@ -10,6 +10,13 @@ from dataclasses import dataclass
 import numpy as np
 
 
+def _check_translation(t) -> np.ndarray:
+    t = np.asarray(t, dtype=np.float64).reshape(3)
+    if not np.all(np.isfinite(t)):
+        raise ValueError("translation has non-finite entries")
+    return t
+
+
 def _check_rotation(R: np.ndarray, tol: float = 1e-6) -> np.ndarray:
     R = np.asarray(R, dtype=np.float64).reshape(3, 3)
     if not np.all(np.isfinite(R)):
@@ -53,10 +60,7 @@ class Rigid3:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "R", _check_rotation(self.R))
-        t = np.asarray(self.t, dtype=np.float64).reshape(3)
-        if not np.all(np.isfinite(t)):
-            raise ValueError("translation has non-finite entries")
-        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "t", _check_translation(self.t))
 
     @classmethod
     def identity(cls) -> "Rigid3":
@@ -105,10 +109,7 @@ class Sim3:
             raise ValueError(f"similarity scale must be finite and positive, got {s}")
         object.__setattr__(self, "scale", s)
         object.__setattr__(self, "R", _check_rotation(self.R))
-        t = np.asarray(self.t, dtype=np.float64).reshape(3)
-        if not np.all(np.isfinite(t)):
-            raise ValueError("translation has non-finite entries")
-        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "t", _check_translation(self.t))
 
     @classmethod
     def identity(cls) -> "Sim3":

@@ -31,7 +31,7 @@ from typing import Iterable, Optional, Sequence
 import numpy as np
 
 from ..errors import CpdetectError, InputError
-from ..fileio import write_text_atomic
+from ..fileio import read_text_utf8, write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -157,14 +157,7 @@ def read_gcp_list(path: str | os.PathLike) -> GcpList:
     number, or a file without observations.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError("gcp_list not found" if not path.exists() else "expected a file", path)
-    try:
-        text = path.read_bytes().decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise InputError(f"not UTF-8 text (byte {exc.start})", path) from None
-    except OSError as exc:
-        raise InputError(f"cannot read: {exc.strerror or exc}", path) from None
+    text = read_text_utf8(path, "gcp_list")
     lines = text.replace("\ufeff", "").splitlines()
     header_no = next((i for i, l in enumerate(lines) if l.strip()), None)
     if header_no is None:
