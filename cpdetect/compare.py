@@ -566,13 +566,11 @@ def run_site_detector(inputs: SiteInputs, name: str, out_dir: Path, settings: Op
     """Georeference the site with detector ``name`` (resuming from ``out_dir`` when it holds an earlier
     run with the same inputs and settings) and collect what the comparison needs.
 
-    An :class:`InputError` raised by the back end after the detections were written (e.g. the detector
-    found nothing to localize) becomes a ``failed`` report with that reason; one raised before (the
-    site's files) propagates.
+    An :class:`InputError` raised by the back end once the detections are known (a later stage failed)
+    becomes a ``failed`` report with that reason; one raised before (the site's files) propagates.
     """
     from dataclasses import replace
 
-    from .fileio import read_json
     from .pipeline import GeorefInputs, GeorefSettings, run_georef
 
     base = georef_settings if georef_settings is not None else GeorefSettings()
@@ -580,23 +578,21 @@ def run_site_detector(inputs: SiteInputs, name: str, out_dir: Path, settings: Op
     gi = GeorefInputs(reconstruction=inputs.reconstruction, images=inputs.images, gcps=inputs.gcps,
                       out=Path(out_dir), crs=inputs.crs, cloud=inputs.cloud, mesh=inputs.mesh)
     t0 = time.perf_counter()
-    started = time.time()
-    dets_path = Path(out_dir) / "detections.json"
+    detected: dict = {}
     try:
-        report = run_georef(gi, gs, progress=progress)
+        report = run_georef(gi, gs, progress=progress, on_detections=detected.update)
     except UsageError:
         raise
     except InputError as exc:
-        # after the detections were written, a failure is this detector's result (e.g. nothing to
-        # localize), not a problem of the site's files: record it and let the comparison go on
-        if not (dets_path.is_file() and dets_path.stat().st_mtime >= started - 1.0):
+        # once the detections are known, a failure is this detector's result, not a problem of the
+        # site's files: record it and let the comparison go on
+        if not detected:
             raise
         log.warning("detector %s: georef failed: %s", name, exc)
         report = {"status": "failed", "reason": exc.message, "detector": name, "mode": None, "n_markers": 0,
                   "n_paired": 0, "rms_m": None, "markers": [], "unpaired_surveyed": []}
     seconds = time.perf_counter() - t0
-    dets_doc = read_json(dets_path, "detections file")
-    detections = {im["file"]: list(im["detections"]) for im in dets_doc.get("images", [])}
+    detections = {name: list(d["detections"]) for name, d in sorted(detected.items())}
     return SiteDetectorResult(name, report, detections, seconds, _detect_seconds(Path(out_dir)), Path(out_dir))
 
 

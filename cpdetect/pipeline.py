@@ -5,8 +5,7 @@ inputs, settings and the key of the stage before it; a rerun skips every stage w
 same key, so an interrupted run resumes and a changed setting recomputes only from where it matters):
 
 1. ``detect``     run the detector on every registered image (one cached file per image in
-                  ``stages/detect/``; probability maps, reduced, in ``stages/prob/``);
-                  also writes ``OUTDIR/detections.json`` (format ``cpdetect.detections/1``).
+                  ``stages/detect/``; probability maps, reduced, in ``stages/prob/``).
 2. ``localize``   first 3D estimates of the markers, model frame, by one of three modes:
                   ``cloud``: colorize the dense cloud with the probability maps (depth-tested against
                   the mesh or a point z-buffer, :mod:`geometry.fusion`) and DBSCAN the marker points;
@@ -25,7 +24,9 @@ same key, so an interrupted run resumes and a changed setting recomputes only fr
 5. ``register``   correspondence-free registration of the markers to the surveyed points
                   (:func:`geometry.registration.register_points`) in a local metric frame; when it
                   fails with every marker, retried with the best-ranked ones.
-6. export         ``report.json``, ``gcp_list.txt`` (ODM), ``markers.xml`` (Metashape).
+6. export         ``report.json``, ``gcp_list.txt`` (ODM), ``markers.xml`` (Metashape) and
+                  ``detections.json`` (format ``cpdetect.detections/1``), written together at the end:
+                  a run that fails leaves no output of its own (only stage files, for the rerun).
 
 Frames: the reconstruction's frame is the *model* frame; surveyed points are converted to a local
 Cartesian frame (metres) for registration; ``world_from_model`` in the report maps model points into
@@ -47,7 +48,7 @@ from typing import Any, Callable, Optional
 import numpy as np
 
 from .errors import InputError, UsageError
-from .fileio import atomic_path, read_json, write_json_atomic
+from .fileio import atomic_path, read_json, staged_outputs, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -1128,14 +1129,16 @@ def _frame_dict(frame) -> dict:
     return {"repr": repr(frame)}
 
 
+OUTPUTS = ("report.json", "detections.json", "gcp_list.txt", "markers.xml")
+
+
 def export(report: dict, out: Path, surveyed: Surveyed, scene) -> None:
-    """report.json, gcp_list.txt (ODM) and markers.xml (Metashape) in ``out``."""
+    """report.json, gcp_list.txt (ODM) and markers.xml (Metashape) in ``out`` (the last two only for
+    a registration with pairs; :func:`run_georef` writes into a staging folder and moves them at once)."""
     out = Path(out)
     write_json_atomic(out / "report.json", report)
     paired = [m for m in report["markers"] if m["surveyed_name"] is not None]
     if not paired or report["status"] not in ("ok", "ambiguous"):
-        for stale in ("gcp_list.txt", "markers.xml"):
-            (out / stale).unlink(missing_ok=True)
         return
     idx = {n: k for k, n in enumerate(surveyed.names)}
     if surveyed.crs is not None:
@@ -1161,12 +1164,33 @@ def export(report: dict, out: Path, surveyed: Surveyed, scene) -> None:
 
 
 def run_georef(inputs: GeorefInputs, settings: GeorefSettings = GeorefSettings(),
-               progress: Callable = lambda it, **kw: it, workers: int = 1, scheduler: Any = None) -> dict:
+               progress: Callable = lambda it, **kw: it, workers: int = 1, scheduler: Any = None,
+               on_detections: Optional[Callable[[dict], None]] = None) -> dict:
     """Run (or resume) every stage and export; returns the report (also in ``inputs.out/report.json``).
 
+    The outputs (:data:`OUTPUTS`) are written together at the end: a run that fails leaves those of
+    the previous run, if any, untouched and none of its own (its stage files stay, for a rerun to
+    resume; an output folder it created and left empty is removed).
+
     ``workers`` / ``scheduler``: where the detect stage runs (see :func:`stage_detect`; the results do
-    not depend on it, so neither do the stage keys).
+    not depend on it, so neither do the stage keys). ``on_detections``: called with the per-image
+    records (``{name: {"width", "height", "detections", ...}}``) once the detections are known, before
+    the later stages (the comparison keeps them when a later stage fails).
     """
+    out = Path(inputs.out)
+    created = [d for d in (out, *out.parents) if not d.exists()]  # deepest first
+    try:
+        return _run_georef(inputs, settings, progress, workers, scheduler, on_detections)
+    except BaseException:
+        for d in created:  # only folders this run made and left empty
+            try:
+                d.rmdir()
+            except OSError:
+                break
+        raise
+
+
+def _run_georef(inputs, settings, progress, workers, scheduler, on_detections) -> dict:
     t0 = time.perf_counter()
     out = Path(inputs.out)
     store = StageStore(out)
@@ -1187,7 +1211,8 @@ def run_georef(inputs: GeorefInputs, settings: GeorefSettings = GeorefSettings()
     else:
         per_image, k1 = stage_detect(store, scene, image_paths, settings, progress, workers, scheduler)
     k1 = _hash([k1, recon_key])
-    write_detections_json(out / "detections.json", settings.detector, per_image)
+    if on_detections is not None:
+        on_detections(per_image)
     localized, k2 = stage_localize(store, scene, per_image, settings, inputs, k1, progress)
     ctx_cache: list = []
 
@@ -1207,5 +1232,7 @@ def run_georef(inputs: GeorefInputs, settings: GeorefSettings = GeorefSettings()
               "dropped": triangulated["dropped"], "adjusted": triangulated["adjusted"],
               "registration_attempts": registered.get("attempts")}
     report = build_report(settings, inputs, localized, triangulated, registered, surveyed, stages)
-    export(report, out, surveyed, scene)
+    with staged_outputs(out, stale=OUTPUTS) as staging:
+        write_detections_json(staging / "detections.json", settings.detector, per_image)
+        export(report, staging, surveyed, scene)
     return report

@@ -285,3 +285,40 @@ def test_georef_workers_must_be_positive_and_lambdas_cannot_go_to_workers(site, 
     assert main(base + ["--detector", "local", "--workers", "2"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "'local' cannot run in worker processes" in err[0]
+
+
+@pytest.mark.parametrize("where", ["register", "export"])
+def test_a_run_that_fails_late_leaves_no_outputs_and_a_rerun_resumes(site, monkeypatch, capsys, where):
+    """A failure in a later stage (or while the outputs are written) leaves none of this run's outputs
+    and keeps the previous run's intact; the stage files stay and the rerun resumes from them."""
+    import cpdetect.pipeline as pipeline
+    from cpdetect.errors import InputError
+
+    root, _ = site
+    out = root / f"out_fail_{where}"
+    outputs = ("report.json", "detections.json", "gcp_list.txt", "markers.xml")
+
+    def boom(*a, **kw):
+        raise InputError("simulated failure", "somewhere.bin")
+
+    target = "stage_register" if where == "register" else "write_metashape_markers"
+    module = pipeline if where == "register" else __import__("cpdetect.formats.metashape", fromlist=["x"])
+    with monkeypatch.context() as m:
+        m.setattr(module, target, boom)
+        assert _georef(root, out) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "simulated failure" in err[0]
+    left = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
+    assert not any(name in left for name in outputs), left
+    assert all(p.startswith("stages/") for p in left), left  # no staging leftovers either
+    assert _georef(root, out) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert all((out / name).is_file() for name in outputs)
+    assert report["stages"]["ran"] == (["register"] if where == "register" else [])
+    # a failing rerun keeps the complete outputs of the run before, byte for byte
+    before = {name: (out / name).read_bytes() for name in outputs}
+    with monkeypatch.context() as m:
+        m.setattr(module, target, boom)
+        assert _georef(root, out, "--noise", "0.03") == 2
+    capsys.readouterr()
+    assert {name: (out / name).read_bytes() for name in outputs} == before
