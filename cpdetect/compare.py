@@ -562,9 +562,11 @@ def _detect_seconds(out_dir: Path) -> Optional[float]:
 
 
 def run_site_detector(inputs: SiteInputs, name: str, out_dir: Path, settings: Optional[dict] = None,
-                      georef_settings: Any = None, progress: Progress = _no_progress) -> SiteDetectorResult:
+                      georef_settings: Any = None, progress: Progress = _no_progress,
+                      rejects: Optional[Path] = None) -> SiteDetectorResult:
     """Georeference the site with detector ``name`` (resuming from ``out_dir`` when it holds an earlier
-    run with the same inputs and settings) and collect what the comparison needs.
+    run with the same inputs and settings) and collect what the comparison needs. ``rejects``: a
+    reviewer's ``rejects.json`` (from an earlier report's gallery), honoured by the georef run.
 
     An :class:`InputError` raised by the back end once the detections are known (a later stage failed)
     becomes a ``failed`` report with that reason; one raised before (the site's files) propagates.
@@ -576,7 +578,7 @@ def run_site_detector(inputs: SiteInputs, name: str, out_dir: Path, settings: Op
     base = georef_settings if georef_settings is not None else GeorefSettings()
     gs = replace(base, detector=name, detector_settings=dict(settings or {}))
     gi = GeorefInputs(reconstruction=inputs.reconstruction, images=inputs.images, gcps=inputs.gcps,
-                      out=Path(out_dir), crs=inputs.crs, cloud=inputs.cloud, mesh=inputs.mesh)
+                      out=Path(out_dir), crs=inputs.crs, cloud=inputs.cloud, mesh=inputs.mesh, rejects=rejects)
     t0 = time.perf_counter()
     detected: dict = {}
     try:
@@ -766,9 +768,11 @@ def recommend_site(results: Sequence[SiteDetectorResult], n_surveyed: int) -> Re
 
 def compare_site(inputs: SiteInputs, names: Sequence[str], work_dir: str | Path,
                  settings: Optional[Mapping[str, dict]] = None, georef_settings: Any = None,
-                 progress: Progress = _no_progress) -> SiteComparison:
+                 progress: Progress = _no_progress, rejects: Optional[Path] = None) -> SiteComparison:
     """Run every detector of ``names`` through the georef back end (``work_dir/runs/<name>/``, resumable)
-    and compare them. ``settings``: detector name -> its settings."""
+    and compare them. ``settings``: detector name -> its settings. ``rejects``: a reviewer's
+    ``rejects.json``, passed on to every detector's run (a reject names an image and a pixel, whichever
+    detector found it)."""
     from .pipeline import load_surveyed
 
     surveyed = load_surveyed(Path(inputs.gcps), inputs.crs)
@@ -776,7 +780,7 @@ def compare_site(inputs: SiteInputs, names: Sequence[str], work_dir: str | Path,
     for name in names:
         log.info("site %s: detector %s", inputs.root, name)
         results.append(run_site_detector(inputs, name, Path(work_dir) / "runs" / name,
-                                         (settings or {}).get(name), georef_settings, progress))
+                                         (settings or {}).get(name), georef_settings, progress, rejects))
     markers, images = site_agreement(results, surveyed.names)
     rec = recommend_site(results, len(surveyed.names))
     return SiteComparison(inputs, list(surveyed.names), np.asarray(surveyed.local, float), results, markers,

@@ -331,7 +331,8 @@ def build_html(cmp: Comparison, gallery: bool = True) -> HtmlReport:
         rep.heading("Review gallery")
         rep.paragraph("Each crop shows one image measurement of a marker as georef exports it (its refined "
                       "centre drawn, up to 8 images per marker), then detections that belong to no marker. "
-                      "Tick wrong ones and download rejects.json; a georef rerun with it drops them.", "note")
+                      "Tick wrong ones and download rejects.json; a rerun with it (cpdetect georef --rejects, or "
+                      "cpdetect compare --rejects) drops them.", "note")
         for det, items in site_gallery(cmp).items():
             rep.heading(det, 3)
             if items:

@@ -121,7 +121,8 @@ class GeorefSettings:
 
 @dataclass(frozen=True)
 class GeorefInputs:
-    """Paths of a georef run. crs: the surveyed points' CRS when gcps.csv does not say it."""
+    """Paths of a georef run. crs: the surveyed points' CRS when gcps.csv does not say it. rejects: the
+    detections a reviewer marked wrong in the comparison report's gallery (``rejects.json``)."""
 
     reconstruction: Path
     images: Path
@@ -131,6 +132,7 @@ class GeorefInputs:
     cloud: Optional[Path] = None
     mesh: Optional[Path] = None
     detections: Optional[Path] = None  # a cpdetect.detections/1 file to use instead of running the detector
+    rejects: Optional[Path] = None  # a cpdetect.rejects/1 file from the review gallery (see run_georef)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -719,8 +721,9 @@ def stage_localize(store, scene, per_image, settings, inputs: GeorefInputs, prev
 class _ViewContext:
     """Per-image depth maps (mesh, else cloud z-buffer, else none) and gray images, cached per pass."""
 
-    def __init__(self, scene, image_paths, settings, inputs):
+    def __init__(self, scene, image_paths, settings, inputs, rejects=()):
         self.scene, self.paths, self.settings = scene, image_paths, settings
+        self.rejects = list(rejects)  # reviewer's rejects: observations there are not used
         self.mesh_rc = _load_mesh_scene(inputs.mesh)
         self.cloud = None
         if self.mesh_rc is None and inputs.cloud:
@@ -751,12 +754,14 @@ def refine_views(ctx: _ViewContext, points: np.ndarray, normals: list, radii: np
     projected point, else at the projected point. ``radii``: (k,) equal-area marker radii, model units.
     Returns per marker the observations, per marker counts {"usable", "detected", "refined",
     "radius_model" (median of the seeding detections' radii, model units, or None)}, and the
-    rejection counts by reason.
+    rejection counts by reason. A refined centre within the tolerance of one of ``ctx.rejects`` (a
+    reviewer's rejects) is dropped, so that a rejected measurement does not come back by projection.
     """
     from geometry.visibility import visible_points
 
     from .imageio import read_image
     from .refine import refine_center
+    from .rejects import is_rejected
 
     settings = ctx.settings
     obs: list[list[dict]] = [[] for _ in points]
@@ -788,17 +793,24 @@ def refine_views(ctx: _ViewContext, points: np.ndarray, normals: list, radii: np
             continue
         gray = read_image(ctx.paths[name], gray=True)
         for j, r_px, cos in todo:
-            counts[j]["usable"] += 1
             u, v = vis.uv[j]
-            seed, seeded_by = (float(u), float(v)), "projection"
+            seed, seeded_by, det_radius = (float(u), float(v)), "projection", None
             if len(det_xy):
                 dd = np.hypot(det_xy[:, 0] - u, det_xy[:, 1] - v)
                 k = int(dd.argmin())
                 if dd[k] <= gate * r_px:
                     seed, seeded_by = (float(det_xy[k, 0]), float(det_xy[k, 1])), "detection"
-                    counts[j]["detected"] += 1
-                    det_radii[j].append(dets[k]["radius_px"] * vis.depth[j] / cam.fx / math.sqrt(max(cos, 1e-3)))
+                    det_radius = dets[k]["radius_px"] * vis.depth[j] / cam.fx / math.sqrt(max(cos, 1e-3))
             res = refine_center(gray, seed[0], seed[1], float(r_px), method=settings.refine_method)
+            if res.ok and ctx.rejects and is_rejected(name, res.x, res.y, ctx.rejects):
+                # a reviewer rejected this measurement: the view is not used (nor counted usable, so
+                # the marker's detected fraction is taken over the views that remain)
+                rejected["reviewer"] = rejected.get("reviewer", 0) + 1
+                continue
+            counts[j]["usable"] += 1
+            if det_radius is not None:
+                counts[j]["detected"] += 1
+                det_radii[j].append(det_radius)
             if not res.ok:
                 rejected["refine failed"] = rejected.get("refine failed", 0) + 1
                 continue
@@ -1190,6 +1202,22 @@ def run_georef(inputs: GeorefInputs, settings: GeorefSettings = GeorefSettings()
         raise
 
 
+def _apply_rejects(per_image: dict, rejects: list[dict], path: Path) -> tuple[dict, dict]:
+    """Drop the detections a reviewer rejected (:func:`cpdetect.rejects.apply_rejects`); returns the
+    filtered records and the report's ``rejects`` summary."""
+    from .rejects import apply_rejects
+
+    applied = apply_rejects(per_image, rejects)
+    log.info("rejects (%s): %d rejects removed %d detections", path, len(rejects), len(applied.removed))
+    if applied.unmatched:
+        # normal for rejects of observations that georef measured by projection, not detected
+        log.info("rejects (%s): %d match no detection (e.g. %s at %.1f, %.1f)", path, len(applied.unmatched),
+                 applied.unmatched[0]["image"], applied.unmatched[0]["x"], applied.unmatched[0]["y"])
+    return applied.detections, {"file": str(path), "n_rejects": len(rejects),
+                                "removed_detections": len(applied.removed),
+                                "unmatched_by_detections": len(applied.unmatched)}
+
+
 def _run_georef(inputs, settings, progress, workers, scheduler, on_detections) -> dict:
     t0 = time.perf_counter()
     out = Path(inputs.out)
@@ -1199,6 +1227,11 @@ def _run_georef(inputs, settings, progress, workers, scheduler, on_detections) -
     for p, what in ((inputs.cloud, "point cloud"), (inputs.mesh, "mesh")):
         if p is not None and not Path(p).is_file():
             raise InputError(f"{what} not found", p)
+    rejects = None
+    if inputs.rejects is not None:
+        from .html_report import read_rejects
+
+        rejects = read_rejects(Path(inputs.rejects))
     scene = load_scene(Path(inputs.reconstruction))
     surveyed = load_surveyed(Path(inputs.gcps), inputs.crs)
     image_paths = _image_paths(scene, Path(inputs.images))
@@ -1211,6 +1244,11 @@ def _run_georef(inputs, settings, progress, workers, scheduler, on_detections) -
     else:
         per_image, k1 = stage_detect(store, scene, image_paths, settings, progress, workers, scheduler)
     k1 = _hash([k1, recon_key])
+    rejects_summary = None
+    if rejects is not None:
+        per_image, rejects_summary = _apply_rejects(per_image, rejects, inputs.rejects)
+        # the rejects (not the file's name or time) decide every later stage
+        k1 = _hash([k1, sorted((r["image"], r["x"], r["y"]) for r in rejects)])
     if on_detections is not None:
         on_detections(per_image)
     localized, k2 = stage_localize(store, scene, per_image, settings, inputs, k1, progress)
@@ -1218,7 +1256,7 @@ def _run_georef(inputs, settings, progress, workers, scheduler, on_detections) -
 
     def ctx_factory():
         if not ctx_cache:
-            ctx_cache.append(_ViewContext(scene, image_paths, settings, inputs))
+            ctx_cache.append(_ViewContext(scene, image_paths, settings, inputs, rejects or ()))
         return ctx_cache[0]
 
     k2b = _hash([k2, _file_key(inputs.mesh), _file_key(inputs.cloud)])
@@ -1232,6 +1270,10 @@ def _run_georef(inputs, settings, progress, workers, scheduler, on_detections) -
               "dropped": triangulated["dropped"], "adjusted": triangulated["adjusted"],
               "registration_attempts": registered.get("attempts")}
     report = build_report(settings, inputs, localized, triangulated, registered, surveyed, stages)
+    if rejects_summary is not None:
+        # views dropped in the last refinement pass, the one the reported observations come from
+        rejects_summary["removed_observations"] = triangulated["rejected_views"].get("reviewer", 0)
+    report["rejects"] = rejects_summary
     with staged_outputs(out, stale=OUTPUTS) as staging:
         write_detections_json(staging / "detections.json", settings.detector, per_image)
         export(report, staging, surveyed, scene)

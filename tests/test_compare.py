@@ -127,6 +127,32 @@ def test_a_detector_that_finds_nothing_is_reported_as_failed_not_an_error(site):
     assert all(im["disagree"] == bool(im["found"]["oracle"]) for im in cmp.images)
 
 
+def test_compare_passes_rejects_to_every_georef_run(site, tmp_path, capsys):
+    """The gallery's rejects.json given to compare: each detector's run drops them (here every
+    observation of GCP03: the oracle no longer pairs it); a bad rejects file fails before any run."""
+    root, truth, out, rc = site
+    first = json.loads((out / "runs" / "oracle" / "report.json").read_text())
+    gcp03 = next(m for m in first["markers"] if m["surveyed_name"] == "GCP03")
+    path = tmp_path / "rejects.json"
+    path.write_text(json.dumps({"format": "cpdetect.rejects/1", "rejects": [
+        {"id": gcp03["id"], "image": o["image"], "x": o["x"], "y": o["y"]} for o in gcp03["observations"]]}))
+    again = tmp_path / "report"
+    assert main(["-q", "compare", str(root / "site"), "--detectors", "oracle", "--out", str(again), "--no-cloud",
+                 "--no-gallery", "--rejects", str(path)]) == 0
+    s = json.loads((again / "summary.json").read_text())
+    assert s["results"]["oracle"]["unpaired_surveyed"] == ["GCP03"] and len(s["results"]["oracle"]["paired"]) == 8
+    run = json.loads((again / "runs" / "oracle" / "report.json").read_text())
+    assert run["rejects"]["n_rejects"] == len(gcp03["observations"]) and run["rejects"]["removed_detections"] >= 3
+    capsys.readouterr()
+    path.write_text('{"rejects": [{"image": "a.jpg"}]}')
+    bad_out = tmp_path / "bad"
+    assert main(["compare", str(root / "site"), "--detectors", "oracle", "--out", str(bad_out),
+                 "--rejects", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(path) in err[0] and "rejects[0] needs id, image, x, y" in err[0]
+    assert not bad_out.exists()
+
+
 @needs_chromium
 def test_site_report_opens_in_a_browser_with_plots_gallery_and_summary_table(site, tmp_path):
     root, truth, out, rc = site

@@ -6,6 +6,7 @@ detections (20 %) and false detections (2 per image), written as a ``cpdetect.de
 this tests the 3D back end on its own, whatever the state of the detectors.
 """
 import json
+import math
 import os
 
 import numpy as np
@@ -322,3 +323,63 @@ def test_a_run_that_fails_late_leaves_no_outputs_and_a_rerun_resumes(site, monke
         assert _georef(root, out, "--noise", "0.03") == 2
     capsys.readouterr()
     assert {name: (out / name).read_bytes() for name in outputs} == before
+
+
+def test_rejects_from_the_review_gallery_remove_a_marker_and_its_projected_views(site, capsys):
+    """Rejecting every observation of one marker (as the review gallery writes them) removes it (its
+    detections are dropped before fusion); rejecting a third of the views of another keeps that marker but
+    without those views: georef, which projects each marker into every image that sees it and measures
+    it there, must not bring a rejected measurement back. The other markers keep their pairings."""
+    root, truth = site
+    assert _georef(root, root / "out") == 0  # resumes the first test's run when it ran
+    base = json.loads((root / "out" / "report.json").read_text())
+    victim = next(m for m in base["markers"] if m["surveyed_name"] == "GCP03")
+    rejects = [{"id": victim["id"], "image": o["image"], "x": o["x"], "y": o["y"]} for o in victim["observations"]]
+    thinned = max((m for m in base["markers"] if m["surveyed_name"] not in (None, "GCP03")),
+                  key=lambda m: m["n_views"])
+    inliers = [o for o in thinned["observations"] if o["inlier"]]
+    half = inliers[::3]  # a third of its views: it keeps enough to be triangulated
+    assert len(half) >= 2 and len(inliers) - len(half) >= 4
+    rejects += [{"id": thinned["id"], "image": o["image"], "x": o["x"], "y": o["y"]} for o in half]
+    path = root / "rejects.json"
+    path.write_text(json.dumps({"format": "cpdetect.rejects/1", "rejects": rejects}))
+    out = root / "out_rejects"
+    capsys.readouterr()
+    assert _georef(root, out, "--rejects", str(path)) == 0
+    assert "rejects: " in capsys.readouterr().out
+    report = json.loads((out / "report.json").read_text())
+    assert report["status"] == "ok" and "GCP03" in report["unpaired_surveyed"]
+    assert sorted(m["surveyed_name"] for m in report["markers"] if m["surveyed_name"]) == \
+        sorted(m["surveyed_name"] for m in base["markers"] if m["surveyed_name"] and m["surveyed_name"] != "GCP03")
+    # no marker is left where GCP03 was, and no observation sits on a reject
+    r = victim["model_point"]
+    assert all(np.linalg.norm(np.subtract(m["model_point"], r)) > 0.1 for m in report["markers"])
+    assert not any(o["image"] == j["image"] and math.hypot(o["x"] - j["x"], o["y"] - j["y"]) <= 3.0
+                   for m in report["markers"] for o in m["observations"] for j in rejects)
+    kept = next(m for m in report["markers"] if m["surveyed_name"] == thinned["surveyed_name"])
+    assert {o["image"] for o in kept["observations"]}.isdisjoint({o["image"] for o in half})
+    assert kept["n_views"] >= thinned["n_views"] - len(half) - 1
+    summary = report["rejects"]
+    assert summary["n_rejects"] == len(rejects) and summary["removed_detections"] >= 3
+    assert summary["removed_observations"] >= 1  # measured by projection where a detection was dropped
+    # the detections the back end used (detections.json) lack the rejected ones
+    used = json.loads((out / "detections.json").read_text())["images"]
+    near = [d for im in used for d in im["detections"] for j in rejects
+            if im["file"] == j["image"] and math.hypot(d["x"] - j["x"], d["y"] - j["y"]) <= 3.0]
+    assert near == []
+
+
+@pytest.mark.parametrize("content, words", [
+    ('{"rejects": [', "not valid JSON"),
+    ('{"format": "cpdetect.rejects/1"}', "needs a 'rejects' list"),
+    ('{"rejects": [{"id": "M001", "image": "a.jpg", "x": 10}]}', "rejects[0] needs id, image, x, y"),
+])
+def test_a_bad_rejects_file_is_a_one_line_error_naming_it(site, tmp_path, capsys, content, words):
+    root, _ = site
+    path = tmp_path / "rejects.json"
+    path.write_text(content)
+    out = tmp_path / "o"
+    assert _georef(root, out, "--rejects", str(path)) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(path) in err[0] and words in err[0], err
+    assert not out.exists()

@@ -37,6 +37,9 @@ def register(sub) -> None:
     g.add_argument("--mode", default="auto", choices=["auto", "cloud", "ray", "triangulate"],
                    help="georef localisation mode (default auto)")
     g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--rejects", type=Path, metavar="REJECTS.json",
+                   help="detections marked wrong in an earlier report's review gallery (rejects.json): "
+                        "every detector's georef run drops them")
     p.add_argument("--no-gallery", action="store_true", help="leave the crop gallery out of the HTML report")
     p.add_argument("--screenshot", action="store_true",
                    help="also save REPORT_DIR/report.png, rendered by headless chromium")
@@ -73,6 +76,12 @@ def run(args) -> int:
         from ..errors import InputError
 
         raise InputError("site or dataset folder not found", args.input)
+    if args.rejects is not None:
+        if cmp_mod.is_dataset_folder(args.input):
+            raise UsageError("--rejects applies to a site, not to an annotated dataset")
+        from ..html_report import read_rejects
+
+        read_rejects(args.rejects)  # a bad file fails before any run
     if cmp_mod.is_dataset_folder(args.input):
         from ..dataset import load_dataset
 
@@ -88,7 +97,8 @@ def run(args) -> int:
         for n in names:  # fail on a bad setting or a detector that cannot load before any long run
             get_detector(n, **settings[n])
         result = cmp_mod.compare_site(inputs, names, args.out, settings,
-                                      GeorefSettings(mode=args.mode, seed=args.seed), progress=iter_progress())
+                                      GeorefSettings(mode=args.mode, seed=args.seed), progress=iter_progress(),
+                                      rejects=args.rejects)
     paths = write_outputs(result, args.out, gallery=not args.no_gallery)
     rec = result.recommendation
     print(f"recommendation: {rec.choice or 'none'}" + (" (insufficient evidence)" if rec.insufficient else ""))

@@ -23,6 +23,9 @@ def register(sub) -> None:
                         "running the detector")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="detector setting (repeatable)")
+    p.add_argument("--rejects", type=Path, metavar="REJECTS.json",
+                   help="detections a reviewer marked wrong in the review gallery of 'cpdetect compare' "
+                        "(rejects.json): they are dropped, and so are observations measured within 3 px of one")
     p.add_argument("--workers", type=int, default=1,
                    help="worker processes of the detect stage (results identical to serial)")
     p.add_argument("--scheduler", metavar="ADDRESS",
@@ -58,7 +61,7 @@ def run(args) -> int:
                               registration_noise_m=args.noise, seed=args.seed)
     inputs = GeorefInputs(reconstruction=args.reconstruction, images=args.images, gcps=args.gcps, out=args.out,
                           crs=args.crs, cloud=args.cloud, mesh=args.mesh,
-                          detections=args.detections)
+                          detections=args.detections, rejects=args.rejects)
     report = run_georef(inputs, settings, progress=iter_progress(), workers=args.workers,
                         scheduler=args.scheduler or None)
     print_summary(report, sys.stdout)
@@ -78,5 +81,9 @@ def print_summary(report: dict, fh) -> None:
         w = report["world_from_model"]
         print(f"world_from_model: scale {w['scale']:.6f}, translation "
               f"{', '.join(f'{v:.3f}' for v in w['translation'])}", file=fh)
+    if report.get("rejects"):
+        r = report["rejects"]
+        print(f"rejects: {r['n_rejects']} from {r['file']}: {r['removed_detections']} detections and "
+              f"{r['removed_observations']} measured views dropped", file=fh)
     if report.get("rms_m") is not None:
         print(f"residual RMS: {1000 * report['rms_m']:.1f} mm", file=fh)
