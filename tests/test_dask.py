@@ -103,3 +103,21 @@ def test_without_dask_a_scheduler_is_a_usage_error(monkeypatch):
     monkeypatch.setitem(sys.modules, "distributed", None)  # as if not installed
     with pytest.raises(UsageError, match=r"pip install 'cpdetect\[dask\]'"):
         make_executor(scheduler="tcp://127.0.0.1:9")
+
+
+def test_georef_detect_stage_on_dask_equals_serial(images, cluster, tmp_path):
+    """`cpdetect georef --scheduler`: the detect stage's records are those of a serial run."""
+    from test_bad_input import GOOD_SURVEYED, _colmap_text
+
+    cl, _ = cluster
+    model = _colmap_text(tmp_path / "model", [f"{i:04d}.jpg" for i in range(10)])
+    (tmp_path / "gcps.csv").write_text(GOOD_SURVEYED)
+    base = ["-q", "georef", "--reconstruction", str(model), "--images", str(images), "--gcps",
+            str(tmp_path / "gcps.csv")]
+    records = []
+    for name, extra in (("serial", []), ("dask", ["--scheduler", cl.scheduler_address])):
+        main(base + ["--out", str(tmp_path / name), *extra])  # too few views to georeference: exit 1
+        data = json.loads((tmp_path / name / "stages" / "detect.json").read_text())["data"]
+        records.append({n: {k: v for k, v in d.items() if k != "seconds"} for n, d in data.items()})
+    assert records[0] == records[1] and len(records[0]) == 10
+    assert sum(len(d["detections"]) for d in records[0].values()) >= 8
