@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import numbers
 import re
 from importlib import metadata
 from typing import Any, Callable, Protocol, runtime_checkable
@@ -142,11 +143,12 @@ def settings_from_dataclass(settings_cls: type, values: dict[str, Any]):
     return settings_cls(**values)
 
 
-# annotation name -> test of a (JSON-parsed) value; an int is a valid float, a bool is not a number
+# annotation name -> test of a (JSON-parsed) value; an int is a valid float, a bool is not a number;
+# numpy scalars count (numpy registers them as numbers.Integral / numbers.Real)
 _TYPE_TESTS: dict[str, Callable[[Any], bool]] = {
-    "bool": lambda v: isinstance(v, bool),
-    "int": lambda v: isinstance(v, int) and not isinstance(v, bool),
-    "float": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
+    "bool": lambda v: isinstance(v, (bool, np.bool_)),
+    "int": lambda v: isinstance(v, numbers.Integral) and not isinstance(v, bool),
+    "float": lambda v: isinstance(v, numbers.Real) and not isinstance(v, bool),
     "str": lambda v: isinstance(v, str),
     "None": lambda v: v is None,
 }

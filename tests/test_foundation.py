@@ -100,6 +100,8 @@ def test_settings_of_the_right_type_pass():
     register_detector("toy", _Toy)
     t = get_detector("toy", threshold=1, levels=2, mode="slow", refine=False, max_side=None, scales=[1.0, 0.5])
     assert t.settings.threshold == 1 and t.settings.max_side is None
+    # numpy scalars are numbers too (settings computed by scripts)
+    assert get_detector("toy", threshold=np.float32(0.25), levels=np.int64(4)).settings.levels == 4
 
 
 @pytest.mark.parametrize("marker_type", ["square", "circle", "diagonal"])
