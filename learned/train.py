@@ -1,4 +1,4 @@
-"""Training loop for the HMA marker segmenter: two-scale training, RMI loss, SGD with poly decay.
+"""Training loop for the HMA marker segmenter: two-scale training, RMI loss, SGD or AdamW with poly decay.
 
 Output folder layout (``out``)::
 
@@ -41,8 +41,10 @@ LOG_FILE = "train_log.jsonl"
 class TrainConfig:
     """Arguments of a training run (all saved to ``train_args.json``).
 
-    epochs x iters_per_epoch iterations of ``batch`` crops of ``crop`` pixels. lr: SGD base rate,
-    decayed per iteration as (1 - it / total) ** poly. val_frac: fraction of the images held out
+    epochs x iters_per_epoch iterations of ``batch`` crops of ``crop`` pixels. optimizer: "sgd"
+    (upstream HMA: momentum, weight decay) or "adamw" (converges in far fewer iterations, which is what
+    a CPU budget allows). lr: base rate (None = 0.01 for SGD, 0.001 for AdamW), decayed per iteration
+    as (1 - it / total) ** poly. val_frac: fraction of the images held out
     (ignored when ``val_data`` is given); val_crops: fixed validation crops. checkpoint_minutes: time
     between checkpoints inside an epoch.
     """
@@ -57,7 +59,8 @@ class TrainConfig:
     iters_per_epoch: int = 200
     batch: int = 8
     crop: int = 256
-    lr: float = 0.01
+    optimizer: str = "sgd"
+    lr: float | None = None
     momentum: float = 0.9
     weight_decay: float = 1e-4
     poly: float = 1.0
@@ -80,6 +83,25 @@ class TrainResult:
     best_iou: float | None
     last_val: dict | None
     seconds: float
+
+
+OPTIMIZERS = ("sgd", "adamw")
+
+
+def base_learning_rate(cfg: TrainConfig) -> float:
+    if cfg.lr is not None:
+        return float(cfg.lr)
+    return 0.01 if cfg.optimizer == "sgd" else 1e-3
+
+
+def make_optimizer(params: list[torch.nn.Parameter], cfg: TrainConfig) -> torch.optim.Optimizer:
+    """SGD with momentum (upstream) or AdamW; weight decay cfg.weight_decay in both."""
+    lr = base_learning_rate(cfg)
+    if cfg.optimizer == "sgd":
+        return torch.optim.SGD(params, lr=lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
+    if cfg.optimizer == "adamw":
+        return torch.optim.AdamW(params, lr=lr, weight_decay=cfg.weight_decay)
+    raise ValueError(f"unknown optimizer {cfg.optimizer!r}; valid: {', '.join(OPTIMIZERS)}")
 
 
 def pick_device(name: str) -> torch.device:
@@ -236,7 +258,8 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
         for p in model.backbone.parameters():
             p.requires_grad_(False)
     params = [p for p in model.parameters() if p.requires_grad]
-    opt = torch.optim.SGD(params, lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
+    opt = make_optimizer(params, cfg)
+    base_lr = base_learning_rate(cfg)
     it, best = 0, None
     if checkpoint is not None:
         model.load_state_dict(checkpoint["model"])
@@ -271,7 +294,7 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
         x, y = x.to(device), y.to(device)
         if cfg.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
-        lr = cfg.lr * (1.0 - it / total) ** cfg.poly
+        lr = base_lr * (1.0 - it / total) ** cfg.poly
         for g in opt.param_groups:
             g["lr"] = lr
         outd = model(x)

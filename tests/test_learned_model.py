@@ -313,12 +313,13 @@ def _weights(d):
     return torch.load(d / "checkpoint.pt", weights_only=False)["model"]
 
 
-def test_training_is_deterministic_and_resume_continues_exactly(tmp_path):
+@pytest.mark.parametrize("optimizer", ["sgd", "adamw"])
+def test_training_is_deterministic_and_resume_continues_exactly(tmp_path, optimizer):
     from learned.train import train
 
     s = _tiny_samples()
-    r1 = train(_cfg(tmp_path / "a"), samples=s[:2], val_samples=s[2:], progress=False)
-    r2 = train(_cfg(tmp_path / "b"), samples=s[:2], val_samples=s[2:], progress=False)
+    r1 = train(_cfg(tmp_path / "a", optimizer=optimizer), samples=s[:2], val_samples=s[2:], progress=False)
+    r2 = train(_cfg(tmp_path / "b", optimizer=optimizer), samples=s[:2], val_samples=s[2:], progress=False)
     assert r1.iterations == r2.iterations == 4
     w1, w2 = _weights(tmp_path / "a"), _weights(tmp_path / "b")
     assert all(torch.equal(w1[k], w2[k]) for k in w1)
@@ -332,9 +333,11 @@ def test_training_is_deterministic_and_resume_continues_exactly(tmp_path):
             raise Stop
 
     with pytest.raises(Stop):
-        train(_cfg(tmp_path / "c"), samples=s[:2], val_samples=s[2:], progress=False, on_iteration=stop_at_3)
+        train(_cfg(tmp_path / "c", optimizer=optimizer), samples=s[:2], val_samples=s[2:], progress=False,
+              on_iteration=stop_at_3)
     assert torch.load(tmp_path / "c" / "checkpoint.pt", weights_only=False)["iteration"] == 2
-    r3 = train(_cfg(tmp_path / "c"), resume=True, samples=s[:2], val_samples=s[2:], progress=False)
+    r3 = train(_cfg(tmp_path / "c", optimizer=optimizer), resume=True, samples=s[:2], val_samples=s[2:],
+               progress=False)
     assert r3.iterations == 4
     w3 = _weights(tmp_path / "c")
     assert max(float((w1[k].float() - w3[k].float()).abs().max()) for k in w1) < 1e-6
@@ -358,6 +361,14 @@ def test_training_from_init_with_other_class_count_and_frozen_backbone(tmp_path)
     # the OCR head trained on, the 2-class semantic head was re-initialised with 2 outputs
     assert not torch.equal(ft["ocr.conv3x3_ocr.0.weight"], src_state["ocr.conv3x3_ocr.0.weight"])
     assert ft["cls_head.6.weight"].shape[0] == 2
+
+
+def test_unknown_optimizer_is_refused(tmp_path):
+    from learned.train import train
+
+    s = _tiny_samples()
+    with pytest.raises(ValueError, match="unknown optimizer 'rmsprop'; valid: sgd, adamw"):
+        train(_cfg(tmp_path / "x", optimizer="rmsprop"), samples=s[:2], val_samples=s[2:], progress=False)
 
 
 def test_augmented_crops_keep_labels_aligned():
