@@ -61,7 +61,7 @@ class ClassicalSettings:
     max_radius_frac: float = 1.0 / 3.0
     min_contrast: float = 18.0
     search_megapixels: float = 3.2
-    max_candidates_per_level: int = 300
+    max_candidates_per_level: int = 1000
     min_score: float = 0.3
     refine_method: str = "auto"
     probability_map: bool = True
@@ -194,16 +194,17 @@ def _intersect(l1: np.ndarray, l2: np.ndarray) -> np.ndarray | None:
 
 
 SCORE_FEATURES = ("q", "agree", "logC", "spread", "e_rel", "frac", "widths_min", "mid_share", "core_ratio",
-                  "log_r", "opp", "inverted", "alternations", "outer_mixed", "hull_fallback")
+                  "log_r", "opp", "inverted", "alternations", "outer_mixed", "hull_fallback", "fill", "alt_far",
+                  "dark_surround")
 # logistic model over SCORE_FEATURES (standardised by _SCORE_MEAN/_SCORE_STD), fitted on verified
 # candidates of generated images with *train*-split backgrounds (bench/fit_score.py); never on test.
-_SCORE_MEAN = np.array([0.85183, 0.86431, 4.2277, 0.15602, 0.034478, 0.98853, 0.77126, 0.18735, 0.95172, 2.7623,
-                        0.14777, 0.1338, 0.46536, 0.19573, 0.0])
-_SCORE_STD = np.array([0.058894, 0.077247, 0.59908, 0.088661, 0.025071, 0.023449, 0.12561, 0.076036, 0.5165, 0.60778,
-                       0.11187, 0.15807, 0.22073, 0.09901, 1.0])
-_SCORE_W = np.array([0.96329, 2.2681, -0.65906, -0.42501, -0.7962, 0.29851, 0.61288, -0.41217, 0.58725, 0.95542,
-                     -1.4198, -2.3292, -0.49793, -0.821, 0.0])
-_SCORE_B = -8.6044
+_SCORE_MEAN = np.array([0.89788, 0.88565, 3.9453, 0.17049, 0.022652, 0.89935, 0.81044, 0.21726, 0.68607, 2.5895, 0.17118,
+                        0.13139, 0.48214, 0.19315, 0, 0.90019, 0.45547, 0.24461])
+_SCORE_STD = np.array([0.038992, 0.068644, 0.59845, 0.079251, 0.014615, 0.062835, 0.10115, 0.070911, 0.30921, 0.55007,
+                       0.10626, 0.14383, 0.23664, 0.10004, 1.0, 0.079265, 0.22542, 0.16949])
+_SCORE_W = np.array([-0.082746, 2.9741, -0.61573, -0.89588, -0.75466, 0.41454, 1.2622, -0.83428, 0.073071, 0.77643,
+                     -0.74854, -2.5122, -0.58631, -0.15826, 0, 0.86033, -0.8408, -1.0955])
+_SCORE_B = -10.492
 
 
 def marker_score(feats: dict) -> float:
@@ -290,6 +291,10 @@ class _Verifier:
             level = float(P[:, m].mean())
             expect = B if k % 2 == 0 else D
             if abs(level - expect) > 0.3 * C:
+                return False
+            # cells of a checkerboard or tag are uniform; a textured background that happens to
+            # be darker and brighter in the right places beside the marker's outline is not
+            if float(np.median(np.abs(P[:, m] - level))) > 0.15 * C:
                 return False
         return True
 
@@ -489,6 +494,7 @@ class _Verifier:
         # the stronger polarity first; the other when the first fails or fits poorly (a sector on a
         # background of its own level has no boundary, and the ray runs on to some far edge)
         rough.sort(key=lambda t: -t[0])
+        core_r = float(core["radii"][core["core_end"]])
         fits: list = []
         for strength, pol_dark, b, frac in rough:
             if frac < 0.75:
@@ -499,13 +505,17 @@ class _Verifier:
                 fits.append("size out of range")
                 continue
             fits.append(self._fit_outline(x, y, core, sec, f, inner, pol_dark, r0))
-            if isinstance(fits[-1], dict) and fits[-1]["e_rel"] < 0.03:
-                break
+            # the pattern's own outline lies near the end of the four-sector core (a square's corners
+            # at 1.41 times); a boundary much farther out is the margin's or the background's
+            if isinstance(fits[-1], dict):
+                fits[-1]["near"] = r0 <= 1.8 * core_r
+                if fits[-1]["near"] and fits[-1]["e_rel"] < 0.03:
+                    break
         good = [t for t in fits if isinstance(t, dict)]
         if not good:
             return fits[0]
         outline = None
-        for fit in sorted(good, key=lambda t: t["e_rel"]):
+        for fit in sorted(good, key=lambda t: (not t["near"], t["e_rel"])):
             outline = self.outline(fit["mtype"], x, y, core, fit["pol_dark"], fit["e1"], fit["e2"], fit["ell"])
             if outline is not None and self._encloses(outline, x, y):
                 break
@@ -522,7 +532,7 @@ class _Verifier:
         radius = math.sqrt(area / math.pi)
         if radius < 0.8 * self.s.min_radius_px or radius > self.max_radius * 1.1:
             return "size out of range"
-        outer = self.outer_ring(x, y, outline, D, B, C, ~core["dark"][sec])
+        outer = self.outer_ring(x, y, outline, D, B, C, ~core["dark"][sec], (f > 0.15) & (f < 0.85))
         if isinstance(outer, str):
             return outer
         feats = dict(q=core["q"], agree=core["agree"], logC=math.log(C), spread=core["spread"],
@@ -646,7 +656,7 @@ class _Verifier:
             return None
         return pts
 
-    def outer_ring(self, x, y, outline, D, B, C, bright_ray: np.ndarray) -> str | dict:
+    def outer_ring(self, x, y, outline, D, B, C, bright_ray: np.ndarray, mid_ray: np.ndarray) -> str | dict:
         """Around the outline the checker must not continue: just outside (1.12 and 1.25 times the
         outline distance) the surroundings of dark sectors and of bright sectors must not both be
         inverted (bright next to dark, dark next to bright: a checkerboard or a tag's bit cells), and
@@ -669,35 +679,60 @@ class _Verifier:
             dist[j] = best
         if not np.isfinite(dist).all():
             return "outline does not enclose the centre"
-        radii = np.array([1.12, 1.25, 1.35, 1.6])
+        # inside: a marker's sectors are solid out to the outline (the pixels of a tag's bit pattern
+        # around an X-corner of its bits are not)
+        fr = np.array([0.35, 0.5, 0.65, 0.8])
+        Vi = self.levels.sample(x + fr[:, None] * dist[None, :] * self.cos[None, :],
+                                y + fr[:, None] * dist[None, :] * self.sin[None, :],
+                                np.maximum(dist[None, :] * 0.087, 1.0) * np.ones((len(fr), self.N_THETA)))[:, mid_ray]
+        fin = np.isfinite(Vi)
+        fill = float(np.mean((Vi[fin] > 0.5 * (D + B)) == np.broadcast_to(bright_ray[mid_ray], Vi.shape)[fin])) \
+            if fin.any() else 0.0
+        self.last_fill = fill
+        radii = np.array([1.12, 1.25, 1.35, 1.6, 2.0, 2.5])
         xs = x + radii[:, None] * dist[None, :] * self.cos[None, :]
         ys = y + radii[:, None] * dist[None, :] * self.sin[None, :]
         V = self.levels.sample(xs, ys, np.maximum(dist[None, :] * 0.087, 1.0) * np.ones_like(xs))
-        inverted, alt_max, mixed = 0.0, 0.0, 0.0
+        inverted, alt_max, mixed, alt_far = 0.0, 0.0, 0.0, 0.0
+        # all around at the dark sectors' own level: bright cells inside a dark field (a tag's bits);
+        # a marker's printed margin is white, and a dark wall is rarely the ink's level all around
+        near = V[:2][np.isfinite(V[:2])]
+        dark_surround = float(np.mean(near < D + 0.15 * C)) if near.size else 0.0
+        # rings partly outside the image (markers at the border) are judged on the part inside,
+        # with the alternation threshold scaled to it
         for row in V[:2]:
             fin = np.isfinite(row)
-            if fin.sum() < 0.5 * self.N_THETA:
+            if fin.sum() < 0.25 * self.N_THETA:
                 continue
             dark_next_to_bright = np.mean(row[fin & bright_ray] < D + 0.3 * C) if (fin & bright_ray).any() else 0
             bright_next_to_dark = np.mean(row[fin & ~bright_ray] > B - 0.3 * C) if (fin & ~bright_ray).any() else 0
             inverted = max(inverted, float(min(dark_next_to_bright, bright_next_to_dark)))
             if min(dark_next_to_bright, bright_next_to_dark) > 0.6:
                 return "inverted surroundings (checkerboard or tag)"
-        for row in V[2:]:
+        for i, row in enumerate(V[2:]):
+            vis = float(np.isfinite(row).mean())
             row = row[np.isfinite(row)]
-            if row.size < 0.5 * self.N_THETA:
+            if vis < 0.25:
                 continue
             cls = np.where(row < D + 0.25 * C, -1, np.where(row > B - 0.25 * C, 1, 0))
             seq = cls[cls != 0]
             if seq.size == 0:
                 continue
             alternations = int(np.sum(seq != np.roll(seq, 1)))
+            if i >= 2:  # far rings (2 and 2.5 outline distances): context for the score only
+                alt_far = max(alt_far, min(alternations / vis, 16) / 16.0)
+                continue
             fd, fb = np.mean(cls == -1), np.mean(cls == 1)
-            alt_max = max(alt_max, min(alternations, 12) / 12.0)
+            alt_max = max(alt_max, min(alternations / vis, 12) / 12.0)
             mixed = max(mixed, float(min(fd, fb)))
-            if alternations >= 8 and fd > 0.3 and fb > 0.3:
+            if alternations >= max(3.0, 8 * vis) and fd > 0.3 and fb > 0.3:
                 return "checker continues beyond the outline (checkerboard or tag)"
-        return dict(inverted=inverted, alternations=alt_max, outer_mixed=mixed)
+        if fill < 0.75:
+            return "sectors not solid out to the outline"
+        if dark_surround > 0.85:
+            return "dark field all around (a tag's bit cells)"
+        return dict(inverted=inverted, alternations=alt_max, outer_mixed=mixed, fill=fill, alt_far=alt_far,
+                    dark_surround=dark_surround)
 
 
 # ------------------------------------------------------------------------------------------------
