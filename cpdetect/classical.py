@@ -504,32 +504,25 @@ class _Verifier:
             if r0 < 0.6 * self.s.min_radius_px or r0 > 1.5 * self.max_radius:
                 fits.append("size out of range")
                 continue
-            fits.append(self._fit_outline(x, y, core, sec, f, inner, pol_dark, r0))
-            # the pattern's own outline lies near the end of the four-sector core (a square's corners
-            # at 1.41 times); a boundary much farther out is the margin's or the background's
-            if isinstance(fits[-1], dict):
-                fits[-1]["near"] = r0 <= 1.8 * core_r
-                if fits[-1]["near"] and fits[-1]["e_rel"] < 0.03:
-                    break
+            fits.append(self._with_outline(self._fit_outline(x, y, core, sec, f, inner, pol_dark, r0), x, y, core,
+                                           core_r))
+            if isinstance(fits[-1], dict) and fits[-1]["near"] and fits[-1]["e_rel"] < 0.03:
+                break
+        else:
+            # neither polarity alone: each sector against its own level
+            bs = np.concatenate([t[2] for t in rough])
+            if np.isfinite(bs).mean() >= 0.5:
+                r0 = float(np.nanmedian(bs))
+                if 0.6 * self.s.min_radius_px <= r0 <= 1.5 * self.max_radius:
+                    fits.append(self._with_outline(self._fit_outline(x, y, core, sec, f, inner, None, r0), x, y,
+                                                   core, core_r))
         good = [t for t in fits if isinstance(t, dict)]
         if not good:
             return fits[0]
-        outline = None
-        for fit in sorted(good, key=lambda t: (not t["near"], t["e_rel"])):
-            outline = self.outline(fit["mtype"], x, y, core, fit["pol_dark"], fit["e1"], fit["e2"], fit["ell"])
-            if outline is not None and self._encloses(outline, x, y):
-                break
-            outline = None
+        fit = min(good, key=lambda t: (not t["near"], t["e_rel"]))
         hull_fallback = 0.0
-        if outline is None:
-            # the model's corners are unreliable (strong tilt, occlusion)
-            # (a hull of the boundary points and their reflection through the centre would do as an
-            # outline, but on generated train images it admitted more false markers than markers)
-            return "outline degenerate"
+        outline, radius = fit["outline"], fit["radius"]
         mtype, e_model, r0, ok, rays = fit["mtype"], fit["e_model"], fit["r0"], fit["ok"], fit["rays"]
-        area = 0.5 * abs(np.dot(outline[:, 0], np.roll(outline[:, 1], -1))
-                         - np.dot(outline[:, 1], np.roll(outline[:, 0], -1)))
-        radius = math.sqrt(area / math.pi)
         if radius < 0.8 * self.s.min_radius_px or radius > self.max_radius * 1.1:
             return "size out of range"
         outer = self.outer_ring(x, y, outline, D, B, C, ~core["dark"][sec], (f > 0.15) & (f < 0.85))
@@ -544,20 +537,30 @@ class _Verifier:
         score = marker_score(feats)
         return _Verified(x, y, mtype, radius, score, outline, (D, B))
 
-    def _fit_outline(self, x, y, core, sec, f, inner, pol_dark: bool, r0: float) -> dict | str:
-        """Boundary points of the sectors of one polarity on fine rings (0.25 .. 2.2 r0), jumps
-        dropped, and the three outline models fitted to them; a dict, or the reason string."""
+    def _fit_outline(self, x, y, core, sec, f, inner, pol_dark: bool | None, r0: float) -> dict | str:
+        """Boundary points of the sectors of one polarity (``pol_dark`` True: the dark sectors, False:
+        the bright ones, None: every sector against its own level) on fine rings (0.25 .. 2.2 r0),
+        jumps dropped, and the three outline models fitted to them; a dict, or the reason string."""
         D, B, C = core["D"], core["B"], core["C"]
         n_r = 72
         radii = np.linspace(0.25 * r0, 2.2 * r0, n_r)
         step = radii[1] - radii[0]
         P = self.polar(x, y, radii, np.full(n_r, max(step, 1.0)))
-        rays = inner & (core["dark"][sec] == pol_dark)
-        bnd, _ = self.ray_boundaries(P, radii, 1, pol_dark, D if pol_dark else B, C)
+        dark_ray = core["dark"][sec]
+        if pol_dark is None:
+            # for a background darker on one side of the marker and brighter on the other
+            rays = inner.copy()
+            bnd = np.where(dark_ray, self.ray_boundaries(P, radii, 1, True, D, C)[0],
+                           self.ray_boundaries(P, radii, 1, False, B, C)[0])
+            sectors = np.arange(4)
+        else:
+            rays = inner & (dark_ray == pol_dark)
+            bnd, _ = self.ray_boundaries(P, radii, 1, pol_dark, D if pol_dark else B, C)
+            sectors = np.nonzero(core["dark"] == pol_dark)[0]
         ok = rays & np.isfinite(bnd)
         # along a sector the boundary distance changes smoothly with the angle: a ray far from the
         # running median of its neighbours met something else (background edge, occluder)
-        for k in np.nonzero(core["dark"] == pol_dark)[0]:
+        for k in sectors:
             js = np.nonzero(ok & (sec == k))[0]
             js = js[np.argsort(f[js])]
             if len(js) < 5:
@@ -567,20 +570,32 @@ class _Verifier:
             med = np.nanmedian(np.lib.stride_tricks.sliding_window_view(pad, 7), axis=1)
             ok[js[np.abs(b - med) > 0.1 * med + 1.0]] = False
         lost = rays & np.isnan(bnd) & np.isnan(P[1:]).any(0)
-        if ok.sum() < 0.8 * (rays & ~lost).sum() or ok.sum() < 0.4 * rays.sum():
+        missing = np.zeros(4, bool)  # sectors to stand in for by their opposite one
+        if pol_dark is None:
+            # a sector on a background of its own level runs on to some far edge or none: it
+            # ends well beyond the others, or rarely
+            med = np.full(4, np.inf)
+            for k in sectors:
+                m = ok & (sec == k)
+                if m.sum() >= 6 and m.sum() >= 0.6 * (rays & ~lost & (sec == k)).sum():
+                    med[k] = float(np.median(bnd[m]))
+            missing = med > 1.5 * med.min()
+            ok &= ~missing[sec]
+            if missing.sum() > 2 or (missing & np.roll(missing, 2)).any():
+                return "marker boundary not found (fine pass)"
+        elif ok.sum() < 0.8 * (rays & ~lost).sum() or ok.sum() < 0.4 * rays.sum():
             return "marker boundary not found (fine pass)"
-        # outline model per sector of the boundary polarity
         pts_by_sector = {}
-        for k in np.nonzero(core["dark"] == pol_dark)[0]:
+        for k in sectors:
             m = ok & (sec == k)
-            order = np.argsort(f[m])
-            js = np.nonzero(m)[0][order]
+            js = np.nonzero(m)[0][np.argsort(f[m])]
             pts_by_sector[k] = np.stack([x + bnd[js] * self.cos[js], y + bnd[js] * self.sin[js]], 1)
-        k1, k2 = pts_by_sector
-        for ka, kb in ((k1, k2), (k2, k1)):
-            # a sector outside the image: its opposite one reflected through the centre stands in
-            # (the pattern is point symmetric to first order)
-            if len(pts_by_sector[ka]) < 6 and (lost & (sec == ka)).sum() > 0.5 * (rays & (sec == ka)).sum():
+        for ka in sectors:
+            kb = (ka + 2) % 4
+            # a sector outside the image (or, mixing levels, without a boundary): its opposite one
+            # reflected through the centre stands in (the pattern is point symmetric to first order)
+            if len(pts_by_sector[ka]) < 6 and len(pts_by_sector[kb]) >= 6 and (
+                    missing[ka] or (lost & (sec == ka)).sum() > 0.5 * (rays & (sec == ka)).sum()):
                 pts_by_sector[ka] = 2.0 * np.array([x, y]) - pts_by_sector[kb]
         if min(len(p) for p in pts_by_sector.values()) < 6:
             return "too few boundary points"
@@ -600,8 +615,31 @@ class _Verifier:
         e_model = {"diagonal": e_line, "square": e_two, "circle": e_ell}[mtype]
         if not e_model < 0.1 * r0 + 0.2:
             return f"outline does not fit ({mtype})"
+        if pol_dark is None:
+            # the outline's corners from the opposite pair that fits better
+            err = [e[1] if mtype == "diagonal" else e[0] for e in (e1 if mtype == "diagonal" else e2)]
+            pair = (0, 2) if err[0] + err[2] <= err[1] + err[3] else (1, 3)
+            pol_dark = bool(core["dark"][pair[0]])
+            e1, e2 = [e1[k] for k in pair], [e2[k] for k in pair]
         return dict(mtype=mtype, pol_dark=pol_dark, e1=e1, e2=e2, ell=ell, e_model=e_model, r0=r0, ok=ok,
                     rays=rays & ~lost, e_rel=e_model / r0)
+
+    def _with_outline(self, fit: dict | str, x: float, y: float, core: dict, core_r: float) -> dict | str:
+        """Adds the outline polygon, its equal-area radius and ``near`` to a fit (or says why not)."""
+        if isinstance(fit, str):
+            return fit
+        outline = self.outline(fit["mtype"], x, y, core, fit["pol_dark"], fit["e1"], fit["e2"], fit["ell"])
+        if outline is None or not self._encloses(outline, x, y):
+            # the model's corners are unreliable (strong tilt, occlusion)
+            # (a hull of the boundary points and their reflection through the centre would do as an
+            # outline, but on generated train images it admitted more false markers than markers)
+            return "outline degenerate"
+        area = 0.5 * abs(np.dot(outline[:, 0], np.roll(outline[:, 1], -1))
+                         - np.dot(outline[:, 1], np.roll(outline[:, 0], -1)))
+        radius = math.sqrt(area / math.pi)
+        # the pattern's own outline lies near the end of the four-sector core (a square's corners at
+        # 1.41 times, more under tilt); an outline much farther out is the margin's or the background's
+        return dict(fit, outline=outline, radius=radius, near=radius <= 1.9 * core_r)
 
     @staticmethod
     def _encloses(poly: np.ndarray, x: float, y: float) -> bool:
