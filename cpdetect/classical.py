@@ -137,6 +137,15 @@ class _Verified:
     levels: tuple[float, float] = (0.0, 255.0)  # dark and bright grey levels
 
 
+def _nanfree(a: np.ndarray) -> bool:
+    return not np.isnan(a).any()
+
+
+def _nanmedian(a: np.ndarray, axis=None):
+    """np.nanmedian, with the much faster np.median when there is no NaN (rings inside the image)."""
+    return np.median(a, axis) if _nanfree(a) else np.nanmedian(a, axis)
+
+
 def _wrap(a: np.ndarray | float) -> np.ndarray | float:
     return (np.asarray(a) + np.pi) % TWO_PI - np.pi
 
@@ -304,9 +313,14 @@ class _Verifier:
         e2 = np.exp(-2j * self.theta)
 
         def harmonics(P):
-            mean = np.nanmean(P, 1, keepdims=True)
-            std = np.nanstd(P, 1) + 1e-6
-            h2 = np.nanmean((P - mean) * e2[None, :], 1)
+            if _nanfree(P):
+                mean = P.mean(1, keepdims=True)
+                std = P.std(1) + 1e-6
+                h2 = ((P - mean) * e2[None, :]).mean(1)
+            else:
+                mean = np.nanmean(P, 1, keepdims=True)
+                std = np.nanstd(P, 1) + 1e-6
+                h2 = np.nanmean((P - mean) * e2[None, :], 1)
             return mean, std, math.sqrt(2) * np.abs(h2) / std, np.angle(h2)
 
         # the prefilter has checked the four inner rings; sample outward chunk by chunk and stop
@@ -376,10 +390,10 @@ class _Verifier:
             if m.sum() < 2:
                 return "sector too narrow"
             vals = Praw[:, m]
-            levels.append(float(np.nanmedian(vals)))
+            levels.append(float(_nanmedian(vals)))
             # uniformity on the outer core rings (the inner ones are mixed by blur)
             outer = vals[radii[core] >= 0.4 * radii[end]]
-            spreads.append(float(np.nanmedian(np.abs(outer - levels[-1]))) if outer.size else 0.0)
+            spreads.append(float(_nanmedian(np.abs(outer - levels[-1]))) if outer.size else 0.0)
             mid = np.mod(a0 + 0.5 * widths[k], TWO_PI)
             dark_flags.append(T[int(mid / (TWO_PI / self.N_THETA)) % self.N_THETA] < 0)
         dark_flags = np.array(dark_flags)
@@ -567,7 +581,10 @@ class _Verifier:
                 continue
             b = bnd[js]
             pad = np.concatenate([np.full(3, np.nan), b, np.full(3, np.nan)])
-            med = np.nanmedian(np.lib.stride_tricks.sliding_window_view(pad, 7), axis=1)
+            win = np.sort(np.lib.stride_tricks.sliding_window_view(pad, 7), axis=1)  # NaNs sort last
+            cnt = np.isfinite(win).sum(1)
+            rows = np.arange(len(b))
+            med = 0.5 * (win[rows, (cnt - 1) // 2] + win[rows, cnt // 2])  # nanmedian of each window
             ok[js[np.abs(b - med) > 0.1 * med + 1.0]] = False
         lost = rays & np.isnan(bnd) & np.isnan(P[1:]).any(0)
         missing = np.zeros(4, bool)  # sectors to stand in for by their opposite one
