@@ -44,7 +44,8 @@ class TrainConfig:
     epochs x iters_per_epoch iterations of ``batch`` crops of ``crop`` pixels. optimizer: "sgd"
     (upstream HMA: momentum, weight decay) or "adamw" (converges in far fewer iterations, which is what
     a CPU budget allows). lr: base rate (None = 0.01 for SGD, 0.001 for AdamW), decayed per iteration
-    as (1 - it / total) ** poly. val_frac: fraction of the images held out
+    as (1 - it / total) ** poly. rmi_scope: covariances of the RMI term over the batch or per image
+    (:class:`learned.rmi.HMALossWeights`). val_frac: fraction of the images held out
     (ignored when ``val_data`` is given); val_crops: fixed validation crops. checkpoint_minutes: time
     between checkpoints inside an epoch.
     """
@@ -60,6 +61,7 @@ class TrainConfig:
     batch: int = 8
     crop: int = 256
     optimizer: str = "sgd"
+    rmi_scope: str = "batch"
     lr: float | None = None
     momentum: float = 0.9
     weight_decay: float = 1e-4
@@ -271,7 +273,7 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
     write_json_atomic(out / "train_args.json", _jsonable(cfg))
 
     total = cfg.epochs * cfg.iters_per_epoch
-    weights = HMALossWeights()
+    weights = HMALossWeights(rmi_scope=cfg.rmi_scope)
     stats = RMIStats()
     log_path = out / LOG_FILE
     last_ckpt = time.time()

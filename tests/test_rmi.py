@@ -8,19 +8,22 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from learned.rmi import POS_ALPHA, RMIStats, hma_loss, rmi_loss, rmi_term  # noqa: E402
+from learned.rmi import POS_ALPHA, HMALossWeights, RMIStats, hma_loss, rmi_loss, rmi_term  # noqa: E402
 
 
-def direct_rmi(probs: np.ndarray, onehot: np.ndarray, radius: int = 3, alpha: float = POS_ALPHA) -> float:
-    """sum_k mean_n 0.5 logdet(Syy - Syp (Spp + aI)^-1 Syp^T + aI) / d with explicit window loops."""
+def direct_rmi(probs: np.ndarray, onehot: np.ndarray, radius: int = 3, alpha: float = POS_ALPHA,
+               pooled_batch: bool = False) -> float:
+    """sum_k mean_n 0.5 logdet(Syy - Syp (Spp + aI)^-1 Syp^T + aI) / d with explicit window loops;
+    pooled_batch: one covariance estimate per class from the windows of all images."""
     n, k, h, w = probs.shape
     d = radius * radius
     total = 0.0
+    groups = [list(range(n))] if pooled_batch else [[b] for b in range(n)]
     for c in range(k):
         vals = []
-        for b in range(n):
+        for group in groups:
             ys, ps = [], []
-            for i in range(h - radius + 1):
+            for b, i in ((b, i) for b in group for i in range(h - radius + 1)):
                 for j in range(w - radius + 1):
                     ys.append(onehot[b, c, i:i + radius, j:j + radius].ravel())
                     ps.append(probs[b, c, i:i + radius, j:j + radius].ravel())
@@ -59,6 +62,23 @@ def test_rmi_term_matches_direct_computation_without_pooling():
     want = direct_rmi(probs.astype(np.float32).astype(np.float64), onehot)
     assert ok
     assert abs(float(got) - want) <= 1e-4 * max(1.0, abs(want))
+
+
+@pytest.mark.parametrize("n", [1, 3])
+def test_batch_pooled_rmi_matches_direct_computation_over_all_windows(n):
+    labels, logits = _case(3, n=n)
+    onehot = np.eye(2)[labels].transpose(0, 3, 1, 2)
+    probs = (1.0 / (1.0 + np.exp(-logits.astype(np.float64))) + 1e-6).astype(np.float32)
+    t_p, t_y = torch.from_numpy(probs), torch.from_numpy(onehot.astype(np.float32))
+    got, ok = rmi_term(t_p, t_y, pool=1, pooled_batch=True)
+    want = direct_rmi(probs.astype(np.float64), onehot, pooled_batch=True)
+    assert ok
+    assert abs(float(got) - want) <= 1e-4 * max(1.0, abs(want))
+    per_image, _ = rmi_term(t_p, t_y, pool=1)
+    if n == 1:  # one image: both scopes are the same estimate
+        assert abs(float(per_image) - float(got)) <= 1e-6 * max(1.0, abs(want))
+    else:  # pooling mixes images with other statistics: a different (larger) conditional variance
+        assert abs(float(per_image) - float(got)) > 1e-3
 
 
 def test_rmi_loss_matches_direct_bce_and_rmi_with_pooling():
@@ -123,16 +143,22 @@ def test_better_predictions_have_lower_loss():
     assert float(rmi_loss(good, lab)) < float(rmi_loss(noisy, lab)) - 0.1
 
 
-def test_hma_loss_combines_parts_with_the_recipe_weights():
+@pytest.mark.parametrize("scope", ["batch", "image"])
+def test_hma_loss_combines_parts_with_the_recipe_weights(scope):
     labels, logits = _case(7, h=32, w=32)
     lab = torch.from_numpy(labels)
     t = torch.from_numpy(logits)
     out = {"pred": t, "aux": t * 0.5, "pred_lo": t * 2.0, "pred_hi": -t}
-    total, parts = hma_loss(out, lab)
-    want = (float(rmi_loss(t, lab)) + 0.4 * float(rmi_loss(t * 0.5, lab, False))
+    total, parts = hma_loss(out, lab, HMALossWeights(rmi_scope=scope))
+    want = (float(rmi_loss(t, lab, pooled_batch=scope == "batch")) + 0.4 * float(rmi_loss(t * 0.5, lab, False))
             + 0.05 * (float(rmi_loss(t * 2.0, lab, False)) + float(rmi_loss(-t, lab, False))))
     assert abs(float(total) - want) < 1e-5 * max(1.0, abs(want))
     assert set(parts) == {"main", "aux", "scales", "total"}
+
+
+def test_unknown_rmi_scope_is_refused():
+    with pytest.raises(ValueError, match="rmi_scope"):
+        HMALossWeights(rmi_scope="pixel")
 
 
 def test_labels_and_logits_must_agree_in_size():

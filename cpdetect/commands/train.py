@@ -29,6 +29,9 @@ def register(sub) -> None:
     p.add_argument("--crop", type=int, default=256, help="crop side in pixels (default 256)")
     p.add_argument("--optimizer", choices=("sgd", "adamw"), default="sgd",
                    help="sgd (upstream HMA recipe) or adamw (fewer iterations to converge; default sgd)")
+    p.add_argument("--rmi-scope", choices=("batch", "image"), default="batch",
+                   help="RMI covariances over the whole batch (default; stable when markers are small) or "
+                        "per image (upstream)")
     p.add_argument("--lr", type=float, default=None,
                    help="base learning rate, poly decay (default 0.01 for sgd, 0.001 for adamw)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
@@ -61,7 +64,7 @@ def run(args) -> int:
         raise UsageError("--model from-init needs --init")
     cfg = TrainConfig(data=args.data, out=args.out, val_data=args.val_data, model=args.model, init=args.init,
                       freeze_backbone=args.freeze_backbone, epochs=args.epochs,
-                      iters_per_epoch=args.iters_per_epoch, batch=args.batch, crop=args.crop, optimizer=args.optimizer, lr=args.lr,
+                      iters_per_epoch=args.iters_per_epoch, batch=args.batch, crop=args.crop, optimizer=args.optimizer, rmi_scope=args.rmi_scope, lr=args.lr,
                       val_frac=args.val_frac, seed=args.seed, device=args.device, threads=args.threads,
                       checkpoint_minutes=args.checkpoint_minutes)
     try:
