@@ -520,8 +520,9 @@ class _Verifier:
                 continue
             fits.append(self._with_outline(self._fit_outline(x, y, core, sec, f, inner, pol_dark, r0), x, y, core,
                                            core_r))
-            if isinstance(fits[-1], dict) and fits[-1]["near"] and fits[-1]["e_rel"] < 0.03:
-                break
+            if isinstance(fits[-1], dict) and fits[-1]["near"] and fits[-1]["radius"] <= 1.2 * core_r \
+                    and fits[-1]["e_rel"] < 0.03:
+                break  # the pattern's own outline, clearly: the other polarity can only be farther
         else:
             # neither polarity alone: each sector against its own level
             bs = np.concatenate([t[2] for t in rough])
@@ -533,7 +534,8 @@ class _Verifier:
         good = [t for t in fits if isinstance(t, dict)]
         if not good:
             return fits[0]
-        fit = min(good, key=lambda t: (not t["near"], t["e_rel"]))
+        # near the core, then fitting well, then the innermost (a white margin's edge fits well too)
+        fit = min(good, key=lambda t: (not t["near"], t["e_rel"] > 0.04, t["radius"]))
         hull_fallback = 0.0
         outline, radius = fit["outline"], fit["radius"]
         mtype, e_model, r0, ok, rays = fit["mtype"], fit["e_model"], fit["r0"], fit["ok"], fit["rays"]
@@ -751,8 +753,9 @@ class _Verifier:
         inverted, alt_max, mixed, alt_far = 0.0, 0.0, 0.0, 0.0
         # all around at the dark sectors' own level: bright cells inside a dark field (a tag's bits);
         # a marker's printed margin is white, and a dark wall is rarely the ink's level all around
+        # (darker or brighter than the ink does not count)
         near = V[:2][np.isfinite(V[:2])]
-        dark_surround = float(np.mean(near < D + 0.15 * C)) if near.size else 0.0
+        dark_surround = float(np.mean(np.abs(near - D) < 0.15 * C)) if near.size else 0.0
         # rings partly outside the image (markers at the border) are judged on the part inside,
         # with the alternation threshold scaled to it
         for row in V[:2]:
