@@ -627,7 +627,7 @@ class _Verifier:
         floor = 0.12 + 0.01 * r0
         if e_line <= max(2.0 * e_two, floor) and e_line < 0.05 * r0:
             mtype = "diagonal"
-        elif e_two < e_ell:
+        elif e_two < 0.6 * e_ell:  # two lines per sector are the freer model: a clear win only
             mtype = "square"
         else:
             mtype = "circle"
