@@ -59,7 +59,7 @@ class ClassicalSettings:
 
     min_radius_px: float = 8.0
     max_radius_frac: float = 1.0 / 3.0
-    min_contrast: float = 18.0
+    min_contrast: float = 12.0
     search_megapixels: float = 3.2
     max_candidates_per_level: int = 1000
     min_score: float = 0.3
