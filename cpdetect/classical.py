@@ -100,13 +100,15 @@ class _Levels:
 
         spacing = np.broadcast_to(spacing, xs.shape)
         out = np.full(xs.shape, np.nan, np.float32)
-        scales = [s for s, _ in self.items]
-        idx = np.zeros(xs.shape, np.intp)
-        for i, s in enumerate(scales):
-            idx[spacing >= s] = i
-        for i in np.unique(idx):
+        scales = np.array([s for s, _ in self.items])  # ascending
+        # the coarsest level whose scale is at most the spacing (the finest one below all of them)
+        idx = np.maximum(np.searchsorted(scales, spacing, side="right") - 1, 0)
+        lo, hi = int(idx.min()), int(idx.max())
+        for i in range(lo, hi + 1):
             s, img = self.items[i]
-            m = idx == i
+            m = np.ones(xs.shape, bool) if lo == hi else idx == i
+            if lo != hi and not m.any():
+                continue
             lx = ((xs[m] + 0.5) / s - 0.5).astype(np.float32)
             ly = ((ys[m] + 0.5) / s - 0.5).astype(np.float32)
             n = lx.size
@@ -730,21 +732,15 @@ class _Verifier:
         inverted (bright next to dark, dark next to bright: a checkerboard or a tag's bit cells), and
         farther out (1.35, 1.6) the ring must not alternate between the marker's two levels."""
         # distance from the centre to the outline polygon along each ray
-        dist = np.full(self.N_THETA, np.nan)
         P = outline - np.array([x, y])
-        Q = np.roll(P, -1, 0)
-        for j, (c, s) in enumerate(zip(self.cos, self.sin)):
-            best = np.inf
-            for p, q in zip(P, Q):
-                e = q - p
-                den = c * e[1] - s * e[0]
-                if abs(den) < 1e-12:
-                    continue
-                t = (p[0] * e[1] - p[1] * e[0]) / den
-                u = (p[0] * s - p[1] * c) / den
-                if t > 0 and -1e-9 <= u <= 1 + 1e-9:
-                    best = min(best, t)
-            dist[j] = best
+        E = np.roll(P, -1, 0) - P  # edges p -> p + e, all rays against all edges at once
+        c, s = self.cos[:, None], self.sin[:, None]
+        den = c * E[None, :, 1] - s * E[None, :, 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (P[None, :, 0] * E[None, :, 1] - P[None, :, 1] * E[None, :, 0]) / den
+            u = (P[None, :, 0] * s - P[None, :, 1] * c) / den
+        hit = (np.abs(den) >= 1e-12) & (t > 0) & (u >= -1e-9) & (u <= 1 + 1e-9)
+        dist = np.where(hit, t, np.inf).min(1)
         if not np.isfinite(dist).all():
             return "outline does not enclose the centre"
         # inside: a marker's sectors are solid out to the outline (the pixels of a tag's bit pattern
