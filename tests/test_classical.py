@@ -63,6 +63,18 @@ def test_white_margin_marker_found(det):
     assert len(res.detections) == 1 and res.detections[0].type == "square"
 
 
+@pytest.mark.parametrize("marker_type", MARKER_TYPES)
+def test_marker_cut_by_the_image_border(det, marker_type):
+    # a third of the pattern outside the image: the rays that leave it count neither way
+    img, c, r, _ = tilted_scene(marker_type, (14.0, 120.0), 30.0, 20.0, 0.3, 0.4, seed=5)
+    res = det.detect(img)
+    assert len(res.detections) == 1
+    m = res.detections[0]
+    assert m.type == marker_type
+    assert np.hypot(m.x - c[0], m.y - c[1]) < 0.1
+    assert abs(m.radius_px / r - 1.0) < 0.1
+
+
 def test_probability_map_covers_the_pattern(det):
     img, c, r, mask = tilted_scene("circle", (150.0, 120.0), 35.0, 30.0, 1.2, 0.2, seed=5)
     res = det.detect(img)
