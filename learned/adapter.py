@@ -47,7 +47,7 @@ class HMASettings:
     """Settings of the ``hma`` detector.
 
     model_dir: model folder (None = the shipped weights). scales: inference scales (must contain 1.0),
-    e.g. (1.0,) or (0.5, 1.0). backend: "auto", "torch" or "opencv". device: torch device.
+    default (0.5, 1.0): two-scale HMA, as trained; (1.0,) is faster. backend: "auto", "torch" or "opencv". device: torch device.
     threshold: P(marker) cut for instances. max_side: the longest side the network sees (pixels; the
     image is downscaled to it; None = full resolution). tile / overlap: tiling of the processing image
     (pixels) for bounded memory. min_radius_px: smallest instance kept (equal-area radius, image
@@ -57,7 +57,7 @@ class HMASettings:
     """
 
     model_dir: str | None = None
-    scales: tuple[float, ...] = (1.0,)
+    scales: tuple[float, ...] = (0.5, 1.0)
     backend: str = "auto"
     device: str = "cpu"
     threshold: float = 0.5
