@@ -46,3 +46,21 @@ def test_installed_package_has_its_data_and_runs_from_elsewhere(installed):
     assert int(out) >= 40
     res = subprocess.run([str(venv / "bin" / "cpdetect"), "--help"], cwd=elsewhere, capture_output=True, text=True)
     assert res.returncode == 0 and "COMMAND" in res.stdout
+
+
+def test_installed_package_detects_with_its_shipped_hma_weights(installed):
+    venv, elsewhere = installed
+    code = ("import numpy as np, learned.adapter as a, cpdetect\n"
+            "from cpdetect.markers import MarkerSpec, frontal_homography, render_marker\n"
+            "assert 'site-packages' in str(a.default_model_dir()), a.default_model_dir()\n"
+            "assert a.shipped_weights_present()\n"
+            "img = np.full((256, 256), 120.0)\n"
+            "spec = MarkerSpec('square', size_m=1.0)\n"
+            "render_marker(spec, frontal_homography((128.0, 128.0), 30.0, 0.3, spec), img.shape).composite(img, 35.0, 220.0)\n"
+            "res = cpdetect.get_detector('hma', backend='opencv').detect(img.astype(np.uint8))\n"
+            "print(' '.join(f'{m.x:.2f},{m.y:.2f}' for m in res.detections))\n")
+    out = subprocess.run([str(venv / "bin" / "python"), "-c", code], cwd=elsewhere, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    found = [tuple(map(float, t.split(","))) for t in out.stdout.split()]
+    assert len(found) == 1
+    assert abs(found[0][0] - 128.0) < 0.5 and abs(found[0][1] - 128.0) < 0.5
