@@ -208,3 +208,19 @@ def test_blobs_without_an_x_corner_are_dropped():
     assert HMADetector.with_backend(OracleBackend(mask)).detect(img).detections == []
     kept = HMADetector.with_backend(OracleBackend(mask), drop_unrefined=False).detect(img).detections
     assert len(kept) == 1 and abs(kept[0].x - 64) < 0.5 and abs(kept[0].y - 64) < 0.5
+
+
+def test_uncertain_refinements_are_dropped():
+    # a heavily blurred, noisy marker: refinement finds the X-corner but with a large sigma
+    img, mask, _ = rendered("square", center=(128.0, 128.0), radius=26.0, angle=0.3)
+    rng = np.random.default_rng(3)
+    blurred = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 6.0)
+    noisy = np.clip(blurred + rng.normal(0, 12.0, img.shape), 0, 255).astype(np.uint8)
+    loose = HMADetector.with_backend(OracleBackend(mask), max_sigma_px=100.0).detect(noisy).detections
+    assert len(loose) == 1
+    sigma = loose[0].sigma_px
+    assert sigma > 0.05
+    strict = HMADetector.with_backend(OracleBackend(mask), max_sigma_px=0.5 * sigma).detect(noisy).detections
+    assert strict == []
+    with pytest.raises(ValueError, match="max_sigma_px"):
+        HMADetector.with_backend(OracleBackend(mask), max_sigma_px=0.0)
