@@ -37,7 +37,7 @@ def bar(iterable: Iterable | None = None, **kw: Any):
 
 def iter_progress() -> Callable[..., Iterable]:
     """``progress(iterable, **tqdm_kw)`` for the pipeline's loops (see module doc)."""
-    return lambda it, **kw: bar(it, **kw)
+    return bar
 
 
 @contextmanager

@@ -47,7 +47,8 @@ class HMASettings:
     """Settings of the ``hma`` detector.
 
     model_dir: model folder (None = the shipped weights). scales: inference scales (must contain 1.0),
-    default (0.5, 1.0): two-scale HMA, as trained; (1.0,) is faster. backend: "auto", "torch" or "opencv". device: torch device.
+    default (0.5, 1.0): two-scale HMA, as trained; (1.0,) is faster. backend: "auto", "torch" or
+    "opencv". device: torch device.
     threshold: P(marker) cut for instances. max_side: the longest side the network sees (pixels; the
     image is downscaled to it; None = full resolution). tile / overlap: tiling of the processing image
     (pixels) for bounded memory. min_radius_px: smallest instance kept (equal-area radius, image
@@ -55,7 +56,8 @@ class HMASettings:
     "hough") or "none". drop_unrefined: drop instances where refinement finds no X-corner (blobs of
     texture are not markers). max_sigma_px: drop instances whose refined centre is less certain than
     this (image pixels): on the validation set (train-split backgrounds) 0.3 took false markers from
-    17 to 4 for 5 of 89 true ones, most of them mislocated onto another corner. threads: torch CPU threads (default 1; None = leave torch's setting).
+    17 to 4 for 5 of 89 true ones, most of them mislocated onto another corner. threads: torch CPU
+    threads (default 1; None = leave torch's setting).
     One thread per detector because cpdetect parallelises over images (``--workers``): torch's
     multi-threaded kernels on an oversubscribed CPU ran 20x slower here (13.7 against 0.71 s per
     megapixel with one other busy process on 2 cores).
