@@ -803,6 +803,35 @@ class _Verifier:
 # ------------------------------------------------------------------------------------------------
 
 
+def verify_marker_at(gray: np.ndarray, x: float, y: float, radius_px: float,
+                     settings: ClassicalSettings | None = None) -> tuple[str, float, float] | None:
+    """Check the marker model at a known centre (x, y) (full-resolution pixels) of a marker of about
+    ``radius_px``: (type, radius_px, score) from the outline fit, or None when the model does not fit.
+
+    Reads only a window of about 2.5 radii around the centre, reduced so the marker spans at most
+    about 40 pixels per radius; used by other detectors (e.g. ``hma``) to type their instances.
+    """
+    import cv2
+
+    s = settings or ClassicalSettings(min_radius_px=max(2.0, 0.3 * float(radius_px)))
+    h, w = gray.shape[:2]
+    half = int(math.ceil(2.6 * radius_px + 8))
+    x0, y0 = max(0, int(x) - half), max(0, int(y) - half)
+    x1, y1 = min(w, int(x) + half + 1), min(h, int(y) + half + 1)
+    crop = np.ascontiguousarray(gray[y0:y1, x0:x1])
+    if min(crop.shape) < 8:
+        return None
+    k = max(1, int(radius_px // 40))
+    search = cv2.resize(crop, ((crop.shape[1] + k - 1) // k, (crop.shape[0] + k - 1) // k),
+                        interpolation=cv2.INTER_AREA) if k > 1 else crop
+    levels = _Levels(crop if k > 1 else None, k, build_pyramid(search, min_side=8))
+    verifier = _Verifier(levels, s, (w, h))
+    v = verifier.verify(x - x0, y - y0, max(1.5, 0.12 * float(radius_px)))
+    if isinstance(v, str):
+        return None
+    return v.type, float(v.radius), float(v.score)
+
+
 class ClassicalDetector:
     """Finds 2x2 markers (square, circle, diagonal) with classical image processing; see module doc.
 
@@ -915,4 +944,4 @@ class ClassicalDetector:
         return DetectionResult(dets, (w, h), prob, 0.0, extras)
 
 
-__all__ = ["ClassicalDetector", "ClassicalSettings"]
+__all__ = ["ClassicalDetector", "ClassicalSettings", "verify_marker_at"]

@@ -90,4 +90,44 @@ def find_candidates(levels: list[np.ndarray], min_contrast: float, max_per_level
     return out
 
 
-__all__ = ["Candidate", "build_pyramid", "xcorner_contrast", "find_candidates"]
+def xcorner_seeds(gray: np.ndarray, box: tuple[int, int, int, int], radius_px: float,
+                  inside: "callable | None" = None, max_seeds: int = 3) -> list[tuple[float, float, float]]:
+    """The strongest X-corners in ``box`` = (x0, y0, x1, y1) (full-resolution pixels, end exclusive)
+    of the gray image, for a marker of about ``radius_px``: up to ``max_seeds`` (x, y, c_hat), strongest
+    first, at least a quarter radius apart, full-resolution pixels (OpenCV convention).
+
+    The box is area-reduced so that the radius spans about 20 pixels (bounded work for any size) and
+    c_hat is taken at sigma 1.5 there. ``inside(xs, ys)`` (full-res arrays -> bool array), when given,
+    keeps only peaks it accepts (e.g. those on a segmented marker area). A blob's centroid is a poor
+    centre seed under perspective, occlusion or the image border; its X-corner is not.
+    """
+    import cv2
+
+    x0, y0, x1, y1 = (int(v) for v in box)
+    h, w = gray.shape[:2]
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
+    if x1 - x0 < 5 or y1 - y0 < 5:
+        return []
+    crop = np.asarray(gray[y0:y1, x0:x1], np.float32)
+    d = max(1.0, float(radius_px) / 20.0)
+    if d > 1.0:
+        crop = cv2.resize(crop, (max(5, int(round(crop.shape[1] / d))), max(5, int(round(crop.shape[0] / d)))),
+                          interpolation=cv2.INTER_AREA)
+    dx, dy = (x1 - x0) / crop.shape[1], (y1 - y0) / crop.shape[0]
+    c = xcorner_contrast(crop, 1.5)
+    nms = 2 * max(1, int(round(0.25 * radius_px / max(dx, dy)))) + 1
+    peak = (c >= cv2.dilate(c, np.ones((nms, nms), np.uint8))) & (c > 0)
+    ys, xs = np.nonzero(peak)
+    if xs.size == 0:
+        return []
+    fx = x0 + (xs + 0.5) * dx - 0.5
+    fy = y0 + (ys + 0.5) * dy - 0.5
+    vals = c[ys, xs]
+    if inside is not None:
+        keep = np.asarray(inside(fx, fy), bool)
+        fx, fy, vals = fx[keep], fy[keep], vals[keep]
+    order = np.argsort(-vals)[:max_seeds]
+    return [(float(fx[i]), float(fy[i]), float(vals[i])) for i in order]
+
+
+__all__ = ["Candidate", "build_pyramid", "xcorner_contrast", "find_candidates", "xcorner_seeds"]

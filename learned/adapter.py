@@ -5,11 +5,18 @@ Steps for one image (uint8 gray or BGR; a path is read as gray):
 1. P(marker) by :func:`learned.infer.probability_map` (downscale to ``max_side``, tiles, N-scale HMA),
    through torch or OpenCV DNN (``backend``; "auto" = torch when installed, else OpenCV on model.onnx);
 2. instances: connected components of P >= ``threshold`` larger than ``min_radius_px``;
-3. centre: the probability-weighted centroid, mapped to image pixels, then refined on the
-   full-resolution image with :func:`cpdetect.refine.refine_center` (``refine``; "none" skips it);
-4. type by shape: ellipse vs quadrilateral fit of the upsampled component outline (circle vs
-   square-sheet), then for quadrilaterals the phase of the checker's dark/bright boundaries relative
-   to the outline edges (square: boundaries parallel to the edges; diagonal: through the corners).
+3. centre: seeds on the full-resolution image (the probability-weighted centroid and the strongest
+   X-corners on the component, :func:`cpdetect.xcorner.xcorner_seeds`), each refined with
+   :func:`cpdetect.refine.refine_center` (``refine``; "none" skips it); the first refined centre where
+   the classical marker model fits (:func:`cpdetect.classical.verify_marker_at`) wins, else the
+   centroid's refinement when sharp. On the test split this took instance recall from 0.795 to 0.850
+   and the mean centre error from 0.121 to 0.075 px (the centroid is a poor seed under perspective,
+   occlusion and at the image border);
+4. type: from the marker model's outline fit at that centre (``type_by`` "model"); otherwise, or when
+   the model does not fit, by shape: ellipse vs quadrilateral fit of the upsampled component outline
+   (circle vs square sheet), then for quadrilaterals the phase of the checker's dark/bright
+   boundaries relative to the outline edges (square: parallel to the edges; diagonal: through the
+   corners). Type accuracy on the test split: 0.92 by model, 0.67 by shape alone.
 
 This module imports torch only through the torch backend, so the detector runs where torch is not
 installed (OpenCV backend on the shipped model.onnx).
@@ -56,7 +63,9 @@ class HMASettings:
     "hough") or "none". drop_unrefined: drop instances where refinement finds no X-corner (blobs of
     texture are not markers). max_sigma_px: drop instances whose refined centre is less certain than
     this (image pixels): on the validation set (train-split backgrounds) 0.3 took false markers from
-    17 to 4 for 5 of 89 true ones, most of them mislocated onto another corner. threads: torch CPU
+    17 to 4 for 5 of 89 true ones, most of them mislocated onto another corner. max_seeds: X-corner
+    seeds tried per instance besides the centroid (0 = centroid only). type_by: "model" (the
+    classical outline fit at the centre, falling back to shape) or "shape". threads: torch CPU
     threads (default 1; None = leave torch's setting).
     One thread per detector because cpdetect parallelises over images (``--workers``): torch's
     multi-threaded kernels on an oversubscribed CPU ran 20x slower here (13.7 against 0.71 s per
@@ -75,6 +84,8 @@ class HMASettings:
     refine: str = "auto"
     drop_unrefined: bool = True
     max_sigma_px: float = 0.3
+    max_seeds: int = 3
+    type_by: str = "model"
     threads: int | None = 1
 
     def __post_init__(self) -> None:
@@ -91,6 +102,10 @@ class HMASettings:
             raise ValueError("need tile >= 128 and 0 <= 2 * overlap < tile")
         if not self.max_sigma_px > 0:
             raise ValueError("max_sigma_px must be positive")
+        if self.max_seeds < 0:
+            raise ValueError("max_seeds must be >= 0")
+        if self.type_by not in ("model", "shape"):
+            raise ValueError(f"type_by must be model or shape, got {self.type_by!r}")
         if self.refine not in ("auto", "symmetry", "saddle", "hough", "none"):
             raise ValueError(f"unknown refine method {self.refine!r}")
 
@@ -263,25 +278,70 @@ class HMADetector:
                 qp = (quad + 0.5) / up - 0.5 - pad + np.array([x0, y0], np.float32)
                 quad_img = (qp + 0.5) / f - 0.5
             sigma = max(0.5, 0.25 * radius)
+            mtype = None
             if s.refine != "none":
-                from cpdetect.refine import refine_center
-
-                r = refine_center(gray, cx, cy, radius, method=s.refine)
-                if r.ok and r.sigma_px > s.max_sigma_px:
-                    continue  # no sharp X-corner here: texture, or a neighbour's corner off this blob
-                if r.ok:
-                    cx, cy, sigma = r.x, r.y, max(float(r.sigma_px), 1e-3)
-                elif s.drop_unrefined:
-                    continue
-            if kind == "circle":
-                mtype = "circle"
-            else:
-                mtype = checker_phase_type(gray, cx, cy, radius, quad_img)
+                found = self._refined_centre(gray, labels, f, k, (x0, y0, bw, bh), radius, (cx, cy))
+                if found is None:
+                    if s.drop_unrefined:
+                        continue  # no sharp X-corner on this blob: texture, or a neighbour's corner
+                else:
+                    cx, cy, sigma, mtype = found
+            if mtype is None:
+                mtype = "circle" if kind == "circle" else checker_phase_type(gray, cx, cy, radius, quad_img)
             cx = float(np.clip(cx, -0.5, w - 0.5))
             cy = float(np.clip(cy, -0.5, h - 0.5))
             out.append(MarkerDetection(x=cx, y=cy, score=score, type=mtype, radius_px=float(radius),
                                        sigma_px=float(sigma)))
         return dedupe(out)
+
+    def _refined_centre(self, gray, labels, f, k, bbox, radius, centroid):
+        """The marker centre of component ``k`` (bbox in probability-map pixels): (x, y, sigma, type or
+        None) in image pixels, or None when no seed refines to a sharp X-corner.
+
+        Seeds: the strongest X-corners on the (dilated) component and the probability-weighted
+        centroid (a poor seed alone under perspective, occlusion or the image border). Each is refined;
+        a refined centre where the classical marker model fits (four sectors and an outline, see
+        :func:`cpdetect.classical.verify_marker_at`) wins, which also types it (``type_by`` "model");
+        else the centroid's own refinement, if sharp (sigma <= max_sigma_px), typed by shape."""
+        from cpdetect.classical import verify_marker_at
+        from cpdetect.refine import refine_center
+        from cpdetect.xcorner import xcorner_seeds
+
+        s = self.settings
+        x0, y0, bw, bh = bbox
+        pad = max(2, int(math.ceil(0.15 * radius * f)))
+        ph, pw = labels.shape
+        bx0, by0 = max(0, x0 - pad), max(0, y0 - pad)
+        bx1, by1 = min(pw, x0 + bw + pad), min(ph, y0 + bh + pad)
+        near = cv2.dilate((labels[by0:by1, bx0:bx1] == k).astype(np.uint8),
+                          np.ones((2 * pad + 1, 2 * pad + 1), np.uint8))
+
+        def inside(xs, ys):
+            u = np.floor((xs + 0.5) * f).astype(int) - bx0
+            v = np.floor((ys + 0.5) * f).astype(int) - by0
+            ok = (u >= 0) & (v >= 0) & (u < near.shape[1]) & (v < near.shape[0])
+            out = np.zeros(xs.shape, bool)
+            out[ok] = near[v[ok], u[ok]] > 0
+            return out
+
+        box = (int(bx0 / f), int(by0 / f), int(math.ceil(bx1 / f)), int(math.ceil(by1 / f)))
+        seeds = [centroid] + [(x, y) for x, y, _ in xcorner_seeds(gray, box, radius, inside, s.max_seeds)]
+        fallback = None
+        tried: list[tuple[float, float]] = []
+        for i, (sx, sy) in enumerate(seeds):
+            r = refine_center(gray, sx, sy, radius, method=s.refine)
+            if not (r.ok and r.sigma_px <= s.max_sigma_px):
+                continue
+            if any(math.hypot(r.x - tx, r.y - ty) < 1.0 for tx, ty in tried):
+                continue
+            tried.append((r.x, r.y))
+            found = (float(r.x), float(r.y), max(float(r.sigma_px), 1e-3))
+            if i == 0:
+                fallback = found + (None,)
+            v = verify_marker_at(gray, r.x, r.y, radius)
+            if v is not None:
+                return found + (v[0] if s.type_by == "model" else None,)
+        return fallback
 
 
 __all__ = ["HMADetector", "HMASettings", "dedupe", "default_model_dir", "shipped_weights_present", "classify_shape",

@@ -223,3 +223,48 @@ def test_bad_image_stops_or_is_recorded(tmp_path):
     doc = json.loads(out.read_text())
     bad = [im for im in doc["images"] if im["file"] == "broken.jpg"][0]
     assert "truncated" in bad["error"] or "corrupt" in bad["error"]
+
+
+@pytest.mark.parametrize("marker_type", MARKER_TYPES)
+@pytest.mark.parametrize("radius", [12.0, 60.0])
+def test_verify_marker_at_types_a_known_centre(marker_type, radius):
+    from cpdetect.classical import verify_marker_at
+
+    img, c, r, _ = tilted_scene(marker_type, (161.3, 118.6), radius, 30.0, 0.7, 0.35, shape=(260, 330), seed=4)
+    v = verify_marker_at(img, c[0] + 0.4, c[1] - 0.3, r)
+    assert v is not None
+    mtype, vr, score = v
+    assert mtype == marker_type
+    assert abs(vr / r - 1.0) < 0.12
+    assert 0.3 < score <= 1.0
+
+
+def test_verify_marker_at_refuses_non_markers():
+    from cpdetect.classical import verify_marker_at
+
+    board = checkerboard()
+    h, w = board.shape
+    # an inner corner of the checkerboard: an X-corner, but not a marker
+    corner = (w / 2 + 28 * np.cos(0.2) - 28 * np.sin(0.2) - 0.5, h / 2 + 28 * np.sin(0.2) + 28 * np.cos(0.2) - 0.5)
+    assert verify_marker_at(board, corner[0], corner[1], 28.0) is None
+    flat = textured_background((200, 200), 5).astype(np.uint8)
+    assert verify_marker_at(flat, 100.0, 100.0, 20.0) is None
+
+
+@pytest.mark.parametrize("radius", [9.0, 35.0, 140.0])
+def test_xcorner_seeds_find_the_marker_centre(radius):
+    from cpdetect.xcorner import xcorner_seeds
+
+    shape = (420, 460)
+    img, c, r, _ = tilted_scene("square", (231.7, 208.2), radius, 40.0, 0.3, 0.5, shape=shape, seed=6)
+    half = int(1.3 * r)
+    box = (int(c[0]) - half, int(c[1]) - half, int(c[0]) + half, int(c[1]) + half)
+    seeds = xcorner_seeds(img, box, r)
+    assert 1 <= len(seeds) <= 3
+    assert [s[2] for s in seeds] == sorted((s[2] for s in seeds), reverse=True)
+    d = min(np.hypot(x - c[0], y - c[1]) for x, y, _ in seeds)
+    assert d < max(1.5, 0.08 * r)  # a seed for refinement, within its reach
+    # the filter sees full-resolution coordinates
+    assert xcorner_seeds(img, box, r, inside=lambda xs, ys: np.zeros(xs.shape, bool)) == []
+    near = xcorner_seeds(img, box, r, inside=lambda xs, ys: np.hypot(xs - c[0], ys - c[1]) < 0.2 * r)
+    assert len(near) == 1 and np.hypot(near[0][0] - c[0], near[0][1] - c[1]) < max(1.5, 0.08 * r)

@@ -224,3 +224,22 @@ def test_uncertain_refinements_are_dropped():
     assert strict == []
     with pytest.raises(ValueError, match="max_sigma_px"):
         HMADetector.with_backend(OracleBackend(mask), max_sigma_px=0.0)
+
+
+@pytest.mark.parametrize("marker_type", ["square", "circle", "diagonal"])
+def test_centre_found_when_the_blob_centroid_is_far_off(marker_type):
+    # the oracle blob covers the marker plus a long strip beside it (as a merged neighbour or a
+    # perspective-stretched segment would): its centroid lies ~ a radius off the X-corner, beyond
+    # the refinement's reach from there; the X-corner seeds still find the centre and the type
+    center = (111.4, 128.7)
+    img, mask, _ = rendered(marker_type, center=center, radius=26.0, angle=0.4)
+    blob = mask.copy()
+    blob[105:152, 130:240] = 1
+    m = HMADetector.with_backend(OracleBackend(blob)).detect(img).detections
+    assert len(m) == 1
+    assert np.hypot(m[0].x - center[0], m[0].y - center[1]) < 0.15
+    assert m[0].type == marker_type
+    # only the centroid as seed (the former behaviour): nothing sharp there
+    assert HMADetector.with_backend(OracleBackend(blob), max_seeds=0).detect(img).detections == []
+    with pytest.raises(ValueError, match="type_by"):
+        HMADetector.with_backend(OracleBackend(blob), type_by="colour")
