@@ -187,6 +187,13 @@ def _two_line_fit(pts: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     return best
 
 
+def _mean_turn_deg(two_line_fits: list) -> float:
+    """Mean angle (degrees, 0..90) between the two lines of each :func:`_two_line_fit` result."""
+    turns = [math.degrees(math.acos(min(1.0, abs(float(l1[:2] @ l2[:2]))))) for _, l1, l2 in two_line_fits
+             if l1 is not None and l2 is not None]
+    return float(np.mean(turns)) if turns else 0.0
+
+
 def _ellipse_residual(pts: np.ndarray) -> tuple[float, Any]:
     import cv2
 
@@ -250,6 +257,8 @@ class _Verifier:
         self.max_radius = settings.max_radius_frac * min(self.w, self.h)
         self.theta = (np.arange(self.N_THETA) + 0.5) * TWO_PI / self.N_THETA
         self.cos, self.sin = np.cos(self.theta), np.sin(self.theta)
+        # outline type rule of the current verification: "turn" first, "residual" as the fallback
+        self.type_rule, self.types_disagreed = "turn", False
 
     def polar(self, x: float, y: float, radii: np.ndarray, spacing: np.ndarray) -> np.ndarray:
         """(n_radii, N_THETA) samples on rings around (x, y) (full-res pixels)."""
@@ -493,7 +502,13 @@ class _Verifier:
         # rings that leave the image are NaN; all-NaN reductions are expected and handled
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            return self._verify(x, y, r_start)
+            self.type_rule, self.types_disagreed = "turn", False
+            v = self._verify(x, y, r_start)
+            if isinstance(v, str) and self.types_disagreed:
+                # the outline of the other type may be the one that holds (occlusion, strong tilt)
+                self.type_rule = "residual"
+                v = self._verify(x, y, r_start)
+            return v
 
     def _verify(self, x: float, y: float, r_start: float) -> _Verified | str:
         self.last_core_radius = None
@@ -638,12 +653,28 @@ class _Verifier:
         e_two = math.sqrt(np.mean([e[0] ** 2 for e in e2]))
         e_ell, ell = _ellipse_residual(all_pts)
         floor = 0.12 + 0.01 * r0
-        if e_line <= max(2.0 * e_two, floor) and e_line < 0.05 * r0:
-            mtype = "diagonal"
-        elif e_two < 0.6 * e_ell:  # two lines per sector are the freer model: a clear win only
-            mtype = "square"
+        straight = e_line <= max(2.0 * e_two, floor) and e_line < 0.05 * r0
+        # only sectors seen whole: a sector cut by the image border or an occluder shows one side
+        whole = [i for i, k in enumerate(sectors)
+                 if (ok & (sec == k)).sum() >= 0.8 * max((rays & (sec == k)).sum(), 1)]
+        turn = _mean_turn_deg([e2[i] for i in whole]) if whole else None
+        # the turn between a sector's two lines tells a corner (square: ~90 degrees frontal) from an
+        # arc cut into two chords (circle: ~35) and one straight side (diagonal: ~0); residuals decide
+        # only in between; two lines per sector are the freer model, so they must win clearly there
+        # (on 361 markers of the train-split dev sets, type accuracy 0.920 -> 0.953)
+        by_residual = "diagonal" if straight else ("square" if e_two < 0.6 * e_ell else "circle")
+        if turn is None:
+            by_turn = by_residual
+        elif straight and turn < 40.0:
+            by_turn = "diagonal"
+        elif turn >= 65.0:
+            by_turn = "square"
+        elif turn < 50.0:
+            by_turn = "diagonal" if straight else "circle"
         else:
-            mtype = "circle"
+            by_turn = by_residual
+        self.types_disagreed |= by_turn != by_residual
+        mtype = by_residual if self.type_rule == "residual" else by_turn
         e_model = {"diagonal": e_line, "square": e_two, "circle": e_ell}[mtype]
         if not e_model < 0.1 * r0 + 0.2:
             return f"outline does not fit ({mtype})"
