@@ -289,8 +289,35 @@ class _Verifier:
         # exactly four sectors in the mean normalised profile (as :meth:`core` will require)
         T = ((P - mean) / std[:, :, None]).mean(1)
         sign = T > 0
-        four = (sign != np.roll(sign, 1, axis=1)).sum(1) == 4
-        return ok & four & (q.min(1) >= q_min) & (dphi.max(1) <= math.radians(25))
+        change = sign != np.roll(sign, 1, axis=1)
+        four = change.sum(1) == 4
+        passed = ok & four & (q.min(1) >= q_min) & (dphi.max(1) <= math.radians(25))
+        if passed.any():
+            passed[passed] = self._sector_levels_plausible(P[passed], change[passed])
+        return passed
+
+    def _sector_levels_plausible(self, P: np.ndarray, change: np.ndarray) -> np.ndarray:
+        """Vectorised forms of :meth:`core`'s level tests on the prefilter rings P (n, rings, N_THETA)
+        with exactly four sign changes ``change`` (n, N_THETA): enough contrast, opposite sectors
+        alike (within 0.3 of the contrast), sectors uniform (mean deviation within 0.25 of it), on
+        the outer half of the rings. Chosen on the train-split dev sets (80 + 100 images): no marker
+        lost there or on the test split, and on the 45 MP bench image the verified candidates fell
+        from 680 to 259 (detection 1.66 -> 1.10 s); at 0.25 / 0.2 one marker per set was lost."""
+        sector = np.cumsum(change, axis=1) % 4  # the run before the first change joins the last one
+        # samples next to a boundary mix the two levels under blur
+        near = change | np.roll(change, 1, axis=1) | np.roll(change, -1, axis=1) | np.roll(change, 2, axis=1)
+        outer = P[:, P.shape[1] // 2:, :]  # the outer rings: the inner ones are mixed by blur
+        use = ~near[:, None, :]
+        levels = np.empty((len(P), 4))
+        spread = np.empty((len(P), 4))
+        for k in range(4):
+            m = np.broadcast_to((use & (sector == k)[:, None, :]), outer.shape).astype(np.float64)
+            cnt = np.maximum(m.sum((1, 2)), 1.0)
+            levels[:, k] = (outer * m).sum((1, 2)) / cnt
+            spread[:, k] = (np.abs(outer - levels[:, k, None, None]) * m).sum((1, 2)) / cnt
+        C = np.abs(levels[:, 0] + levels[:, 2] - levels[:, 1] - levels[:, 3]) / 2.0 + 1e-6
+        opp = np.maximum(np.abs(levels[:, 0] - levels[:, 2]), np.abs(levels[:, 1] - levels[:, 3])) / C
+        return (C >= 0.7 * self.s.min_contrast) & (opp <= 0.3) & (spread.max(1) / C <= 0.25)
 
     def is_xcorner(self, x: float, y: float, r_start: float, levels: tuple[float, float] | None = None,
                    q_min: float = 0.75) -> bool:

@@ -268,3 +268,18 @@ def test_xcorner_seeds_find_the_marker_centre(radius):
     assert xcorner_seeds(img, box, r, inside=lambda xs, ys: np.zeros(xs.shape, bool)) == []
     near = xcorner_seeds(img, box, r, inside=lambda xs, ys: np.hypot(xs - c[0], ys - c[1]) < 0.2 * r)
     assert len(near) == 1 and np.hypot(near[0][0] - c[0], near[0][1] - c[1]) < max(1.5, 0.08 * r)
+
+
+@pytest.mark.parametrize("levels, expect", [((30, 220, 30, 220), True), ((30, 220, 120, 220), False),
+                                            ((30, 220, 30, 140), False), ((120, 128, 120, 128), False)])
+def test_prefilter_checks_sector_levels(levels, expect):
+    # four wedges around (80.3, 79.6) with the given grey levels (counter-clockwise from +x)
+    from cpdetect.classical import ClassicalSettings, _Levels, _Verifier
+    from cpdetect.xcorner import build_pyramid
+
+    yy, xx = np.mgrid[0:160, 0:160].astype(np.float64)
+    ang = np.mod(np.arctan2(yy - 79.6, xx - 80.3) - 0.3, 2 * np.pi)
+    img = np.choose((ang // (np.pi / 2)).astype(int), levels).astype(np.float32)
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    ver = _Verifier(_Levels(None, 1, build_pyramid(img)), ClassicalSettings(), (160, 160))
+    assert bool(ver.prefilter(np.array([[80.3, 79.6]]), np.array([3.0]))[0]) is expect
