@@ -176,15 +176,25 @@ def _line_fit_robust(pts: np.ndarray) -> tuple[np.ndarray, float]:
 def _two_line_fit(pts: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """Best split of an ordered polyline into two straight parts: (rms, line1, line2)."""
     n = len(pts)
-    best = (np.inf, None, None)
-    for k in range(max(3, n // 5), min(n - 2, n - n // 5)):
-        # the points next to the corner are rounded by blur: leave one out on each side
-        l1, e1 = _line_fit(pts[:k - 1])
-        l2, e2 = _line_fit(pts[k:])
-        e = math.sqrt((e1 * e1 * (k - 1) + e2 * e2 * (n - k)) / (n - 1))
-        if e < best[0]:
-            best = (e, l1, l2)
-    return best
+    ks = np.arange(max(3, n // 5), min(n - 2, n - n // 5))
+    if ks.size == 0:
+        return (np.inf, None, None)
+    # the points next to the corner are rounded by blur: leave one out on each side, so the parts
+    # are pts[:k - 1] and pts[k:]; their TLS residuals for every k at once from prefix sums
+    q = pts - pts.mean(0)
+    x, y = q[:, 0], q[:, 1]
+    cum = np.vstack([np.zeros(5), np.cumsum(np.column_stack([np.ones(n), x, y, x * x, y * y]), 0)])
+    cxy = np.concatenate([[0.0], np.cumsum(x * y)])
+
+    def sse(lo, hi):  # sum of squared TLS residuals of pts[lo:hi] (arrays of bounds)
+        m, sx, sy, sxx, syy = (cum[hi] - cum[lo]).T
+        sxy = cxy[hi] - cxy[lo]
+        a, c, b = sxx - sx * sx / m, syy - sy * sy / m, sxy - sx * sy / m
+        return np.maximum(0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b), 0.0)
+
+    e = np.sqrt((sse(np.zeros_like(ks), ks - 1) + sse(ks, np.full_like(ks, n))) / (n - 1))
+    k = int(ks[int(np.argmin(e))])
+    return (float(e.min()), _line_fit(pts[:k - 1])[0], _line_fit(pts[k:])[0])
 
 
 def _mean_turn_deg(two_line_fits: list) -> float:
