@@ -283,3 +283,21 @@ def test_prefilter_checks_sector_levels(levels, expect):
     img = cv2.GaussianBlur(img, (0, 0), 0.8)
     ver = _Verifier(_Levels(None, 1, build_pyramid(img)), ClassicalSettings(), (160, 160))
     assert bool(ver.prefilter(np.array([[80.3, 79.6]]), np.array([3.0]))[0]) is expect
+
+
+def test_two_line_fit_finds_the_corner_of_a_polyline():
+    from cpdetect.classical import _two_line_fit
+
+    rng = np.random.default_rng(8)
+    a = np.column_stack([np.linspace(0, 20, 15), np.full(15, 3.0)])  # y = 3
+    b = np.column_stack([np.full(12, 20.0), np.linspace(4.5, 21, 12)])  # x = 20
+    e, l1, l2 = _two_line_fit(np.concatenate([a, b]))
+    assert e < 1e-9
+    assert abs(abs(l1[1]) - 1) < 1e-9 and abs(l1[2] / l1[1] + 3.0) < 1e-9
+    assert abs(abs(l2[0]) - 1) < 1e-9 and abs(l2[2] / l2[0] + 20.0) < 1e-9
+    noisy = np.concatenate([a, b]) + rng.normal(0, 0.1, (27, 2))
+    e_noisy = _two_line_fit(noisy)[0]
+    assert 0.03 < e_noisy < 0.2  # about the injected 0.1 px
+    # an arc fits two lines far worse than a corner of the same size
+    t = np.linspace(0, np.pi / 2, 27)
+    assert _two_line_fit(np.column_stack([20 * np.cos(t), 20 * np.sin(t)]))[0] > 0.2
