@@ -246,6 +246,36 @@ _SCORE_W = np.array([-0.082746, 2.9741, -0.61573, -0.89588, -0.75466, 0.41454, 1
 _SCORE_B = -10.492
 
 
+def opposite_mismatch(levels: np.ndarray) -> np.ndarray:
+    """How much opposite sectors differ, as a fraction of the contrast: levels (n, 4) grey levels of
+    the four sectors in angular order (alternating dark and bright) -> (n,).
+
+    Either directly, or after a shadow: the edge of a shadow across a marker often runs near one of
+    its boundary lines and darkens two adjacent sectors by one factor s (light is multiplicative);
+    when both pairs of opposite sectors agree in their ratio (within a factor 1.5; 0.25 <= s <= 0.9),
+    the mismatch left after dividing the shadowed pair by s counts. The least of the five hypotheses
+    (no shadow, or one on each adjacent pair) is returned."""
+    lv = np.asarray(levels, float).reshape(-1, 4)
+
+    def mismatch(a: np.ndarray) -> np.ndarray:
+        c = np.abs(a[:, 0] + a[:, 2] - a[:, 1] - a[:, 3]) / 2.0 + 1e-6
+        return np.maximum(np.abs(a[:, 0] - a[:, 2]), np.abs(a[:, 1] - a[:, 3])) / c
+
+    best = mismatch(lv)
+    pos = np.maximum(lv, 1.0)
+    for k in range(4):
+        i, j, io, jo = k, (k + 1) % 4, (k + 2) % 4, (k + 3) % 4
+        r1, r2 = pos[:, i] / pos[:, io], pos[:, j] / pos[:, jo]
+        shade = np.sqrt(r1 * r2)
+        lit = lv.copy()
+        lit[:, i] /= shade
+        lit[:, j] /= shade
+        m = mismatch(lit)
+        ok = (shade >= 0.25) & (shade <= 0.9) & (np.abs(np.log(r1 / r2)) <= 0.4)
+        best = np.where(ok, np.minimum(best, m), best)
+    return best
+
+
 def marker_score(feats: dict) -> float:
     """P(marker) in [0, 1] from the verification features (logistic model, see above)."""
     z = (np.array([feats[k] for k in SCORE_FEATURES], float) - _SCORE_MEAN) / _SCORE_STD
@@ -326,8 +356,7 @@ class _Verifier:
             levels[:, k] = (outer * m).sum((1, 2)) / cnt
             spread[:, k] = (np.abs(outer - levels[:, k, None, None]) * m).sum((1, 2)) / cnt
         C = np.abs(levels[:, 0] + levels[:, 2] - levels[:, 1] - levels[:, 3]) / 2.0 + 1e-6
-        opp = np.maximum(np.abs(levels[:, 0] - levels[:, 2]), np.abs(levels[:, 1] - levels[:, 3])) / C
-        return (C >= 0.7 * self.s.min_contrast) & (opp <= 0.3) & (spread.max(1) / C <= 0.25)
+        return (C >= 0.7 * self.s.min_contrast) & (opposite_mismatch(levels) <= 0.3) & (spread.max(1) / C <= 0.25)
 
     def is_xcorner(self, x: float, y: float, r_start: float, levels: tuple[float, float] | None = None,
                    q_min: float = 0.75) -> bool:
@@ -463,7 +492,8 @@ class _Verifier:
         C = B - D
         if C < self.s.min_contrast:
             return f"contrast {C:.0f} below {self.s.min_contrast:.0f}"
-        if abs(np.diff(lv[dark_flags])[0]) > 0.35 * C or abs(np.diff(lv[~dark_flags])[0]) > 0.35 * C:
+        opp = float(opposite_mismatch(lv)[0])
+        if opp > 0.35:
             return "opposite sectors differ"
         if max(spreads) > 0.3 * C:
             return "sectors not uniform"
@@ -482,7 +512,7 @@ class _Verifier:
         return dict(radii=radii, P=P, core_end=end, bounds=bounds, widths=widths, dark=dark_flags,
                     D=D, B=B, C=C, q=float(np.mean(q[core])), agree=float(agree.min()) if agree.size else 1.0,
                     spread=max(spreads) / C, mid_share=mid_share,
-                    opp=max(abs(np.diff(lv[dark_flags])[0]), abs(np.diff(lv[~dark_flags])[0])) / C)
+                    opp=opp)
 
     # -- step 3b: boundaries, outline model, outer ring -----------------------------------------
     def ray_boundaries(self, P: np.ndarray, radii: np.ndarray, start: int, polarity_dark: bool,

@@ -271,7 +271,7 @@ def test_xcorner_seeds_find_the_marker_centre(radius):
 
 
 @pytest.mark.parametrize("levels, expect", [((30, 220, 30, 220), True), ((30, 220, 120, 220), False),
-                                            ((30, 220, 30, 140), False), ((120, 128, 120, 128), False)])
+                                            ((30, 220, 30, 120), False), ((120, 128, 120, 128), False)])
 def test_prefilter_checks_sector_levels(levels, expect):
     # four wedges around (80.3, 79.6) with the given grey levels (counter-clockwise from +x)
     from cpdetect.classical import ClassicalSettings, _Levels, _Verifier
@@ -301,3 +301,35 @@ def test_two_line_fit_finds_the_corner_of_a_polyline():
     # an arc fits two lines far worse than a corner of the same size
     t = np.linspace(0, np.pi / 2, 27)
     assert _two_line_fit(np.column_stack([20 * np.cos(t), 20 * np.sin(t)]))[0] > 0.2
+
+
+def test_opposite_mismatch_allows_a_shadow_over_two_adjacent_sectors():
+    from cpdetect.classical import opposite_mismatch
+
+    lit = np.array([30.0, 220.0, 30.0, 220.0])
+    shaded = lit * np.array([0.55, 0.55, 1.0, 1.0])
+    one_off = np.array([30.0, 220.0, 120.0, 220.0])
+    two_off = np.array([30.0, 220.0, 90.0, 120.0])  # both opposite pairs differ, by unequal factors
+    m = opposite_mismatch(np.stack([lit, shaded, np.roll(shaded, 1), one_off, two_off]))
+    assert m[0] < 1e-6 and m[1] < 1e-6 and m[2] < 1e-6
+    assert m[3] > 0.5  # one sector alone differs: no shadow explains it
+    assert m[4] > 0.35
+
+
+@pytest.mark.parametrize("marker_type", ["square", "circle"])
+def test_marker_half_in_shadow_is_found(det, marker_type):
+    center, angle = (131.4, 122.7), 0.3
+    img = cv2.cvtColor(marker_image(center, 40.0, angle, marker_type, (256, 256), seed=3), cv2.COLOR_BGR2GRAY)
+    yy, xx = np.mgrid[0:256, 0:256].astype(np.float32)
+    # a soft shadow edge along one of the marker's boundary lines, through its centre
+    side = (xx - center[0]) * np.sin(angle) - (yy - center[1]) * np.cos(angle)
+    shade = 1.0 - 0.45 / (1.0 + np.exp(-side / 1.5))
+    shaded = np.clip(img * shade + 0.5, 0, 255).astype(np.uint8)
+    res = det.detect(shaded)
+    assert len(res.detections) == 1
+    m = res.detections[0]
+    assert m.type == marker_type
+    # the edge along a boundary line breaks point symmetry (symmetry fit: 0.40 px off, sigma 0.6);
+    # auto falls back to the boundary lines
+    assert np.hypot(m.x - center[0], m.y - center[1]) < 0.3
+    assert m.sigma_px < 0.2
