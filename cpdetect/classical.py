@@ -597,15 +597,24 @@ class _Verifier:
             lost = np.isnan(b) & np.isnan(core["P"][core["core_end"] // 2 + 1:]).any(0)
             found = int((rays & np.isfinite(b)).sum())
             frac = found / max(int((rays & ~lost).sum()), 1) if found >= 0.4 * rays.sum() else 0.0
+            # one sector of the polarity on a background of its own level has no boundary at all
+            # while its opposite one is found whole: the opposite one will stand in for it
+            blended = None
+            if frac < 0.75:
+                ks = np.nonzero(core["dark"] == pol_dark)[0]
+                got = [float((rays & (sec == k) & np.isfinite(b)).sum()) / max(float((rays & (sec == k) & ~lost).sum()), 1.0)
+                       for k in ks]
+                if min(got) < 0.25 and max(got) >= 0.9:
+                    blended, frac = int(ks[int(np.argmin(got))]), max(got)
             b, st = b[rays], st[rays]
             strength = frac * (np.nanmedian(st) if np.isfinite(st).any() else 0.0)
-            rough.append((strength, pol_dark, b, frac))
+            rough.append((strength, pol_dark, b, frac, blended))
         # the stronger polarity first; the other when the first fails or fits poorly (a sector on a
         # background of its own level has no boundary, and the ray runs on to some far edge)
         rough.sort(key=lambda t: -t[0])
         core_r = float(core["radii"][core["core_end"]])
         fits: list = []
-        for strength, pol_dark, b, frac in rough:
+        for strength, pol_dark, b, frac, blended in rough:
             if frac < 0.75:
                 fits.append("marker boundary not found")
                 continue
@@ -613,8 +622,8 @@ class _Verifier:
             if r0 < 0.6 * self.s.min_radius_px or r0 > 1.5 * self.max_radius:
                 fits.append("size out of range")
                 continue
-            fits.append(self._with_outline(self._fit_outline(x, y, core, sec, f, inner, pol_dark, r0), x, y, core,
-                                           core_r))
+            fits.append(self._with_outline(self._fit_outline(x, y, core, sec, f, inner, pol_dark, r0, blended), x, y,
+                                           core, core_r))
             if isinstance(fits[-1], dict) and fits[-1]["near"] and fits[-1]["radius"] <= 1.2 * core_r \
                     and fits[-1]["e_rel"] < 0.03:
                 break  # the pattern's own outline, clearly: the other polarity can only be farther
@@ -648,10 +657,13 @@ class _Verifier:
         score = marker_score(feats)
         return _Verified(x, y, mtype, radius, score, outline, (D, B))
 
-    def _fit_outline(self, x, y, core, sec, f, inner, pol_dark: bool | None, r0: float) -> dict | str:
+    def _fit_outline(self, x, y, core, sec, f, inner, pol_dark: bool | None, r0: float,
+                     blended: int | None = None) -> dict | str:
         """Boundary points of the sectors of one polarity (``pol_dark`` True: the dark sectors, False:
         the bright ones, None: every sector against its own level) on fine rings (0.25 .. 2.2 r0),
-        jumps dropped, and the three outline models fitted to them; a dict, or the reason string."""
+        jumps dropped, and the three outline models fitted to them; a dict, or the reason string.
+        ``blended``: a sector of that polarity without a boundary (on a background of its level),
+        for which its opposite sector stands in."""
         D, B, C = core["D"], core["B"], core["C"]
         n_r = 72
         radii = np.linspace(0.25 * r0, 2.2 * r0, n_r)
@@ -685,6 +697,10 @@ class _Verifier:
             ok[js[np.abs(b - med) > 0.1 * med + 1.0]] = False
         lost = rays & np.isnan(bnd) & np.isnan(P[1:]).any(0)
         missing = np.zeros(4, bool)  # sectors to stand in for by their opposite one
+        if blended is not None and pol_dark is not None:
+            missing[blended] = True
+            ok &= ~missing[sec]
+            rays = rays & ~missing[sec]
         if pol_dark is None:
             # a sector on a background of its own level runs on to some far edge or none: it
             # ends well beyond the others, or rarely

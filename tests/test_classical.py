@@ -333,3 +333,31 @@ def test_marker_half_in_shadow_is_found(det, marker_type):
     # auto falls back to the boundary lines
     assert np.hypot(m.x - center[0], m.y - center[1]) < 0.3
     assert m.sigma_px < 0.2
+
+
+@pytest.mark.parametrize("marker_type", ["square", "circle", "diagonal"])
+def test_sector_on_a_background_of_its_own_level(det, marker_type):
+    # a marker on a dark wall, but one bright sector runs into a white patch of the bright level: it
+    # has no boundary, and its opposite sector stands in for it
+    from cpdetect.markers import frontal_homography
+
+    center, angle, radius, shape = (121.6, 117.3), 0.5, 30.0, (240, 260)
+    spec = MarkerSpec(marker_type, size_m=1.0)
+    rm = render_marker(spec, frontal_homography(center, radius, angle, spec), shape)
+    bright = np.zeros(shape, bool)
+    h, w = rm.dark.shape
+    bright[rm.y0:rm.y0 + h, rm.x0:rm.x0 + w] = (rm.pattern > 0.9) & (rm.dark < 0.1)
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    ang = np.arctan2(yy - center[1], xx - center[0])
+    side = np.cos(ang[bright] - angle) + 1j * np.sin(ang[bright] - angle)
+    one = np.angle(np.mean(side[np.real(side * np.conj(side[0])) > 0]))  # direction of one bright sector
+    wedge = np.abs(np.angle(np.exp(1j * (ang - angle - one)))) < np.radians(35)
+    img = textured_background(shape, 4, mean=70.0, amp=8.0)
+    img[wedge & (np.hypot(xx - center[0], yy - center[1]) > 0.5 * radius)] = 218.0
+    rm.composite(img, 30.0, 218.0)
+    img = np.clip(img + np.random.default_rng(4).normal(0, 1.5, shape) + 0.5, 0, 255).astype(np.uint8)
+    res = det.detect(img)
+    near = [m for m in res.detections if np.hypot(m.x - center[0], m.y - center[1]) < 3]
+    assert len(near) == 1
+    assert np.hypot(near[0].x - center[0], near[0].y - center[1]) < 0.1
+    assert abs(near[0].radius_px / radius - 1) < 0.25
