@@ -11,13 +11,16 @@ Pipeline for one image:
    from the pyramid level that matches their spacing, so any marker size costs the same):
    a core of rings whose angular profile is two dark and two bright sectors (second angular harmonic
    dominant, constant phase: under perspective, lines through the centre stay lines through it),
-   exactly four alternating sectors, opposite sectors of equal level, uniform sectors, enough contrast;
+   exactly four alternating sectors, opposite sectors of equal level (or equal but for one shadow
+   over two adjacent sectors), uniform sectors, enough contrast;
    then per-ray boundaries of the sectors (where the pattern ends), the outline model fitted to them
    (square: two straight sides per sector; diagonal: one straight side; circle: an ellipse), and an
    outer ring beyond the outline that must not continue the checker (rejects X-corners inside larger
    checkerboards and tag bit patterns). Grout and mullion crosses fail the sector test (thin lines,
    not solid wedges); edges, text and texture fail the core or the outline.
-4. **Type** from the outline model with the smallest residual; **radius_px** from the outline area.
+4. **Type** from the turn between the two straight parts of each sector's boundary (a square's corner
+   ~90 degrees, a circle's arc ~35, a diagonal's single side ~0), the outline models' residuals deciding
+   in between; **radius_px** from the outline area.
 5. **Centre** by :func:`cpdetect.refine.refine_center` on the full-resolution image, window adapted to
    the radius; **sigma_px** from the fit.
 6. **Probability map** at search resolution: the filled outline of each accepted marker (1 inside).
@@ -340,7 +343,7 @@ class _Verifier:
         """Vectorised forms of :meth:`core`'s level tests on the prefilter rings P (n, rings, N_THETA)
         with exactly four sign changes ``change`` (n, N_THETA): enough contrast, opposite sectors
         alike (within 0.3 of the contrast), sectors uniform (mean deviation within 0.25 of it), on
-        the outer half of the rings. Chosen on the train-split dev sets (80 + 100 images): no marker
+        the outer half of the rings. Chosen on the train-split dev sets (80 + 120 images): no marker
         lost there or on the test split, and on the 45 MP bench image the verified candidates fell
         from 680 to 259 (detection 1.66 -> 1.10 s); at 0.25 / 0.2 one marker per set was lost."""
         sector = np.cumsum(change, axis=1) % 4  # the run before the first change joins the last one
