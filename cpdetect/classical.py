@@ -943,10 +943,13 @@ def verify_marker_at(gray: np.ndarray, x: float, y: float, radius_px: float,
                         interpolation=cv2.INTER_AREA) if k > 1 else crop
     levels = _Levels(crop if k > 1 else None, k, build_pyramid(search, min_side=8))
     verifier = _Verifier(levels, s, (w, h))
-    v = verifier.verify(x - x0, y - y0, max(1.5, 0.12 * float(radius_px)))
-    if isinstance(v, str):
-        return None
-    return v.type, float(v.radius), float(v.score)
+    # the detector's own candidates start their rings at various fractions of the radius (their
+    # pyramid level); a marker cut by the border or occluded may show its core only from some of them
+    for frac in (0.12, 0.06, 0.25):
+        v = verifier.verify(x - x0, y - y0, max(1.5, frac * float(radius_px)))
+        if not isinstance(v, str):
+            return v.type, float(v.radius), float(v.score)
+    return None
 
 
 class ClassicalDetector:
