@@ -86,6 +86,18 @@ class ClassicalSettings:
 # multi-resolution sampling
 
 
+def _search_levels(gray: np.ndarray, k: int, min_side: int = 40) -> tuple[np.ndarray, list[np.ndarray], "_Levels"]:
+    """The search image (gray area-reduced by k), its pyramid (levels fine enough for the smallest
+    marker, coarse enough for the largest) and the sampling levels over both and the full image."""
+    import cv2
+
+    h, w = gray.shape[:2]
+    search = cv2.resize(gray, ((w + k - 1) // k, (h + k - 1) // k), interpolation=cv2.INTER_AREA) if k > 1 else gray
+    pyramid = build_pyramid(search, min_side=min_side)
+    # the full image is sampled in place (uint8): no full-size float copy
+    return search, pyramid, _Levels(gray if k > 1 else None, k, pyramid)
+
+
 class _Levels:
     """Images of one photo at several scales: (scale s, float32 image); level pixel = (full + .5)/s - .5."""
 
@@ -249,6 +261,11 @@ _SCORE_W = np.array([-0.082746, 2.9741, -0.61573, -0.89588, -0.75466, 0.41454, 1
 _SCORE_B = -10.492
 
 
+def _checker_contrast(levels: np.ndarray) -> np.ndarray:
+    """|mean of sectors 0, 2 - mean of sectors 1, 3| (+1e-6) of levels (n, 4) in angular order."""
+    return np.abs(levels[:, 0] + levels[:, 2] - levels[:, 1] - levels[:, 3]) / 2.0 + 1e-6
+
+
 def opposite_mismatch(levels: np.ndarray) -> np.ndarray:
     """How much opposite sectors differ, as a fraction of the contrast: levels (n, 4) grey levels of
     the four sectors in angular order (alternating dark and bright) -> (n,).
@@ -261,8 +278,7 @@ def opposite_mismatch(levels: np.ndarray) -> np.ndarray:
     lv = np.asarray(levels, float).reshape(-1, 4)
 
     def mismatch(a: np.ndarray) -> np.ndarray:
-        c = np.abs(a[:, 0] + a[:, 2] - a[:, 1] - a[:, 3]) / 2.0 + 1e-6
-        return np.maximum(np.abs(a[:, 0] - a[:, 2]), np.abs(a[:, 1] - a[:, 3])) / c
+        return np.maximum(np.abs(a[:, 0] - a[:, 2]), np.abs(a[:, 1] - a[:, 3])) / _checker_contrast(a)
 
     best = mismatch(lv)
     pos = np.maximum(lv, 1.0)
@@ -358,7 +374,7 @@ class _Verifier:
             cnt = np.maximum(m.sum((1, 2)), 1.0)
             levels[:, k] = (outer * m).sum((1, 2)) / cnt
             spread[:, k] = (np.abs(outer - levels[:, k, None, None]) * m).sum((1, 2)) / cnt
-        C = np.abs(levels[:, 0] + levels[:, 2] - levels[:, 1] - levels[:, 3]) / 2.0 + 1e-6
+        C = _checker_contrast(levels)
         return (C >= 0.7 * self.s.min_contrast) & (opposite_mismatch(levels) <= 0.3) & (spread.max(1) / C <= 0.25)
 
     def is_xcorner(self, x: float, y: float, r_start: float, levels: tuple[float, float] | None = None,
@@ -925,11 +941,9 @@ def verify_marker_at(gray: np.ndarray, x: float, y: float, radius_px: float,
     """Check the marker model at a known centre (x, y) (full-resolution pixels) of a marker of about
     ``radius_px``: (type, radius_px, score) from the outline fit, or None when the model does not fit.
 
-    Reads only a window of about 2.5 radii around the centre, reduced so the marker spans at most
+    Reads only a window of about 2.6 radii around the centre, reduced so the marker spans at most
     about 40 pixels per radius; used by other detectors (e.g. ``hma``) to type their instances.
     """
-    import cv2
-
     s = settings or ClassicalSettings(min_radius_px=max(2.0, 0.3 * float(radius_px)))
     h, w = gray.shape[:2]
     half = int(math.ceil(2.6 * radius_px + 8))
@@ -938,11 +952,7 @@ def verify_marker_at(gray: np.ndarray, x: float, y: float, radius_px: float,
     crop = np.ascontiguousarray(gray[y0:y1, x0:x1])
     if min(crop.shape) < 8:
         return None
-    k = max(1, int(radius_px // 40))
-    search = cv2.resize(crop, ((crop.shape[1] + k - 1) // k, (crop.shape[0] + k - 1) // k),
-                        interpolation=cv2.INTER_AREA) if k > 1 else crop
-    levels = _Levels(crop if k > 1 else None, k, build_pyramid(search, min_side=8))
-    verifier = _Verifier(levels, s, (w, h))
+    verifier = _Verifier(_search_levels(crop, max(1, int(radius_px // 40)), min_side=8)[2], s, (w, h))
     # the detector's own candidates start their rings at various fractions of the radius (their
     # pyramid level); a marker cut by the border or occluded may show its core only from some of them
     for frac in (0.12, 0.06, 0.25):
@@ -996,14 +1006,7 @@ class ClassicalDetector:
         s = self.settings
         h, w = gray.shape
         k = self._search_factor(w, h)
-        if k > 1:
-            search = cv2.resize(gray, ((w + k - 1) // k, (h + k - 1) // k), interpolation=cv2.INTER_AREA)
-        else:
-            search = gray
-        # levels fine enough for the smallest marker, coarse enough for the largest
-        pyramid = build_pyramid(search)
-        full = gray if k > 1 else None  # sampled in place (uint8): no full-size float copy
-        levels = _Levels(full, k, pyramid)
+        search, pyramid, levels = _search_levels(gray, k)
         cands = find_candidates(pyramid, 0.6 * s.min_contrast, s.max_candidates_per_level)
         verifier = _Verifier(levels, s, (w, h))
         accepted: list[tuple[_Verified, Any]] = []

@@ -264,19 +264,6 @@ class HMADetector:
             u, v = float((p * xx).sum() / wsum), float((p * yy).sum() / wsum)
             cx, cy = (u + 0.5) / f - 0.5, (v + 0.5) / f - 0.5
             score = float(np.clip(wsum / area, 0.0, 1.0))
-            # shape on the component upsampled to >= ~24 px radius, mapped back to image pixels
-            up = max(1.0, 24.0 * f / max(radius * f, 1e-6))
-            pad = 2
-            cm = np.pad(comp.astype(np.uint8), pad)
-            if up > 1.0:
-                pm = np.pad(prob[sl] * comp, pad)
-                pm = cv2.resize(pm, None, fx=up, fy=up, interpolation=cv2.INTER_LINEAR)
-                cm = (pm >= s.threshold).astype(np.uint8)
-            kind, quad = classify_shape(cm)
-            quad_img = None
-            if quad is not None:
-                qp = (quad + 0.5) / up - 0.5 - pad + np.array([x0, y0], np.float32)
-                quad_img = (qp + 0.5) / f - 0.5
             sigma = max(0.5, 0.25 * radius)
             mtype = None
             if s.refine != "none":
@@ -287,12 +274,30 @@ class HMADetector:
                 else:
                     cx, cy, sigma, mtype = found
             if mtype is None:
-                mtype = "circle" if kind == "circle" else checker_phase_type(gray, cx, cy, radius, quad_img)
+                mtype = self._type_by_shape(gray, p, (x0, y0), f, radius, cx, cy)
             cx = float(np.clip(cx, -0.5, w - 0.5))
             cy = float(np.clip(cy, -0.5, h - 0.5))
             out.append(MarkerDetection(x=cx, y=cy, score=score, type=mtype, radius_px=float(radius),
                                        sigma_px=float(sigma)))
         return dedupe(out)
+
+    def _type_by_shape(self, gray, comp_prob, origin, f, radius, cx, cy) -> str:
+        """Type from the component's outline (``comp_prob``: its probabilities, 0 elsewhere, with its
+        top-left corner at ``origin`` in probability-map pixels), upsampled to >= ~24 px radius;
+        quadrilaterals are told apart by :func:`checker_phase_type` at the centre (cx, cy)."""
+        up = max(1.0, 24.0 * f / max(radius * f, 1e-6))
+        pad = 2
+        pm = np.pad(comp_prob, pad)
+        if up > 1.0:
+            pm = cv2.resize(pm, None, fx=up, fy=up, interpolation=cv2.INTER_LINEAR)
+        kind, quad = classify_shape((pm >= self.settings.threshold).astype(np.uint8))
+        if kind == "circle":
+            return "circle"
+        quad_img = None
+        if quad is not None:
+            qp = (quad + 0.5) / up - 0.5 - pad + np.array(origin, np.float32)
+            quad_img = (qp + 0.5) / f - 0.5
+        return checker_phase_type(gray, cx, cy, radius, quad_img)
 
     def _refined_centre(self, gray, labels, f, k, bbox, radius, centroid):
         """The marker centre of component ``k`` (bbox in probability-map pixels): (x, y, sigma, type or
