@@ -435,7 +435,7 @@ class _Verifier:
         r_hi = max(self.max_radius * 1.7, r_start * 2)
         n_all = int(math.ceil(math.log(r_hi / r_start) / math.log(1.08))) + 1
         chunks, end, ref, n = [], 0, None, 0
-        core_open = True
+        core_open, core_cut = True, False
         while n < n_all:
             radii_c = r_start * 1.08 ** np.arange(n, min(n + 10, n_all))
             chunks.append(self.polar(x, y, radii_c, radii_c * (TWO_PI / self.N_THETA)))
@@ -457,12 +457,14 @@ class _Verifier:
                 if (not valid_ring[i] or q[i] < max(0.55, 0.8 * q[:i].max())
                         or std[i] < 0.55 * std[:i].max() or abs(_wrap(phi[i] - ref)) > math.radians(25)):
                     core_open = False
+                    core_cut = not valid_ring[i]
                     break
                 end = i
                 ref = np.angle(np.exp(1j * ref) * 0.7 + np.exp(1j * phi[i]) * 0.3)
                 i += 1
             # boundaries lie within ~2x the core (square corners at 1.41x, tilt); keep a margin
-            if not core_open and r_start * 1.08 ** (n - 1) > 3.0 * r_start * 1.08 ** end:
+            # (unless the image border cut the core short: the boundary may then lie much farther out)
+            if not core_open and not core_cut and r_start * 1.08 ** (n - 1) > 3.0 * r_start * 1.08 ** end:
                 break
         radii = r_start * 1.08 ** np.arange(n)
         if end < 2:

@@ -75,6 +75,22 @@ def test_marker_cut_by_the_image_border(det, marker_type):
     assert abs(m.radius_px / r - 1.0) < 0.1
 
 
+@pytest.mark.parametrize("marker_type", MARKER_TYPES)
+def test_marker_centre_next_to_the_border(det, marker_type):
+    # the border cuts the four-sector core at 9 px, the outline lies 40-56 px out: the rings must
+    # still reach it, whatever ring the search starts from
+    from cpdetect.classical import verify_marker_at
+
+    img, c, r, _ = tilted_scene(marker_type, (160.0, 231.0), 40.0, 15.0, 0.3, 0.35, seed=6)
+    assert 239.0 - c[1] < 10.0
+    for frac in (0.04, 0.06, 0.08, 0.1, 0.12, 0.16, 0.2, 0.25):
+        v = verify_marker_at(img, c[0], c[1], r * frac / 0.12)
+        assert v is not None and v[0] == marker_type, frac
+    found = det.detect(img).detections
+    assert len(found) == 1 and found[0].type == marker_type
+    assert np.hypot(found[0].x - c[0], found[0].y - c[1]) < 0.15
+
+
 def test_probability_map_covers_the_pattern(det):
     img, c, r, mask = tilted_scene("circle", (150.0, 120.0), 35.0, 30.0, 1.2, 0.2, seed=5)
     res = det.detect(img)

@@ -107,6 +107,29 @@ def test_small_blobs_and_empty_maps_give_nothing():
     assert HMADetector.with_backend(OracleBackend(blob * 0)).detect(img).detections == []
 
 
+def test_blobs_without_a_marker_are_cleared_unless_the_network_is_sure():
+    img, mask, _ = rendered("square", center=(80.0, 128.0), radius=22.0, angle=0.4)
+    # two blobs on plain background: one the network is unsure of (P 0.7), one it is sure of (P 0.97)
+    soft = mask.astype(np.float32)
+    soft[100:150, 170:220] = 0.7
+    soft[30:60, 180:210] = 0.97
+
+    class Soft(OracleBackend):
+        def trunk(self, x):
+            m = cv2.resize(self.mask, (x.shape[1], x.shape[0]), interpolation=cv2.INTER_NEAREST)
+            logit = np.log(np.clip(m, 1e-4, 1 - 1e-4) / np.clip(1 - m, 1e-4, 1))
+            return np.stack([np.zeros_like(logit), logit]), np.full(x.shape, 0.5, np.float32)
+
+    res = HMADetector.with_backend(Soft(soft), scales=(1.0,)).detect(img)
+    assert len(res.detections) == 1 and res.detections[0].type == "square"
+    p = res.probability
+    assert p[110:140, 180:210].max() == 0.0  # unsure and no marker: cleared
+    assert np.allclose(p[35:55, 185:205], 0.97, atol=1e-3)  # sure: kept for the pixel metrics
+    assert p[mask > 0].mean() > 0.95  # the marker's own blob is untouched
+    raw = HMADetector.with_backend(Soft(soft), scales=(1.0,), clear_rejected_below=0.0).detect(img).probability
+    assert np.allclose(raw[110:140, 180:210], 0.7, atol=1e-3)
+
+
 def test_settings_are_checked():
     with pytest.raises(UsageError, match="bogus"):
         get_detector("hma", bogus=1)
@@ -116,6 +139,10 @@ def test_settings_are_checked():
         get_detector("hma", backend="tensorflow")
     with pytest.raises(ValueError):
         HMADetector.with_backend(OracleBackend(np.zeros((4, 4))), threshold=1.5)
+    with pytest.raises(ValueError, match="clear_rejected_below"):
+        HMADetector.with_backend(OracleBackend(np.zeros((4, 4))), clear_rejected_below=1.5)
+    with pytest.raises(ValueError, match="max_sigma_verified_px"):
+        HMADetector.with_backend(OracleBackend(np.zeros((4, 4))), max_sigma_verified_px=0.0)
 
 
 def test_rejects_non_images():
@@ -220,8 +247,14 @@ def test_uncertain_refinements_are_dropped():
     assert len(loose) == 1
     sigma = loose[0].sigma_px
     assert sigma > 0.05
-    strict = HMADetector.with_backend(OracleBackend(mask), max_sigma_px=0.5 * sigma).detect(noisy).detections
+    strict = HMADetector.with_backend(OracleBackend(mask), max_sigma_px=0.5 * sigma,
+                                      max_sigma_verified_px=0.5 * sigma).detect(noisy).detections
     assert strict == []
+    # where the marker model confirms the centre, a looser bound applies
+    confirmed = HMADetector.with_backend(OracleBackend(mask), max_sigma_px=0.5 * sigma,
+                                         max_sigma_verified_px=2.0 * sigma).detect(noisy).detections
+    assert len(confirmed) == 1 and confirmed[0].type == "square"
+    assert abs(confirmed[0].x - loose[0].x) < 1e-9 and abs(confirmed[0].y - loose[0].y) < 1e-9
     with pytest.raises(ValueError, match="max_sigma_px"):
         HMADetector.with_backend(OracleBackend(mask), max_sigma_px=0.0)
 
