@@ -114,6 +114,25 @@ def checkerboard(cells=6, cell=28, shape=(240, 320), angle=0.2):
     return np.clip(cv2.GaussianBlur(img, (0, 0), 0.7), 0, 255).astype(np.uint8)
 
 
+@pytest.mark.parametrize("angle", [0.0, 0.2, 0.5, 0.7, 1.1])
+def test_is_xcorner_with_levels_finds_the_same_checker_at_any_angle(angle):
+    from cpdetect.classical import ClassicalSettings, _search_levels, _Verifier
+
+    board = checkerboard(angle=angle)
+    h, w = board.shape
+    c, s = np.cos(angle), np.sin(angle)
+    ver = _Verifier(_search_levels(board, 1)[2], ClassicalSettings(), (w, h))
+    for i, j in [(0, 0), (1, 0), (-1, 1), (2, -1)]:
+        # an inner corner of the board (pixel centres at integer coordinates)
+        x, y = w / 2 + 28 * (c * i - s * j) - 0.5, h / 2 + 28 * (s * i + c * j) - 0.5
+        assert ver.is_xcorner(x, y, 3.0, (30.0, 220.0)), (i, j)
+        # the board's checker, but not at these levels (another checker)
+        assert not ver.is_xcorner(x, y, 3.0, (100.0, 150.0)), (i, j)
+    # a corner where one cell meets the plain background: not a corner of this checker
+    x, y = w / 2 + 84 * (c - s) - 0.5, h / 2 + 84 * (s + c) - 0.5
+    assert not ver.is_xcorner(x, y, 3.0, (30.0, 220.0))
+
+
 def test_checkerboard_corners_are_not_markers(det):
     assert det.detect(checkerboard()).detections == []
 
