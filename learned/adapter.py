@@ -56,7 +56,11 @@ class HMASettings:
     """Settings of the ``hma`` detector.
 
     model_dir: model folder (None = the shipped weights). scales: inference scales (must contain 1.0),
-    default (0.5, 1.0): two-scale HMA, as trained; (1.0,) is faster. backend: "auto", "torch" or
+    default (0.5, 1.0): two-scale HMA, as trained; (1.0,) is faster. small_scales: the scales for an
+    image small enough that its largest pass fits in ``max_side`` (default (0.5, 1.0, 2.0), so up to
+    1024 px for the default max_side; None = always ``scales``): the 2.0 pass shows the network small
+    markers at twice their size. On the validation set it found 107 of 123 markers instead of 102,
+    with 2 false instead of 4, at about 5x the time per megapixel. backend: "auto", "torch" or
     "opencv". device: torch device.
     threshold: P(marker) cut for instances. max_side: the longest side the network sees (pixels; the
     image is downscaled to it; None = full resolution). tile / overlap: tiling of the processing image
@@ -82,6 +86,7 @@ class HMASettings:
 
     model_dir: str | None = None
     scales: tuple[float, ...] = (0.5, 1.0)
+    small_scales: tuple[float, ...] | None = (0.5, 1.0, 2.0)
     backend: str = "auto"
     device: str = "cpu"
     threshold: float = 0.5
@@ -102,6 +107,12 @@ class HMASettings:
         object.__setattr__(self, "scales", tuple(float(s) for s in self.scales))
         if 1.0 not in self.scales or min(self.scales) <= 0:
             raise ValueError(f"scales must be positive and include 1.0, got {self.scales}")
+        if self.small_scales:
+            object.__setattr__(self, "small_scales", tuple(float(s) for s in self.small_scales))
+            if 1.0 not in self.small_scales or min(self.small_scales) <= 0:
+                raise ValueError(f"small_scales must be positive and include 1.0, got {self.small_scales}")
+        else:
+            object.__setattr__(self, "small_scales", None)
         if self.backend not in ("auto", "torch", "opencv"):
             raise ValueError(f"backend must be auto, torch or opencv, got {self.backend!r}")
         if not 0.0 < self.threshold < 1.0:
@@ -232,11 +243,20 @@ class HMADetector:
         return self
 
     # ------------------------------------------------------------------
+    def scales_for(self, width: int, height: int) -> tuple[float, ...]:
+        """The inference scales for an image of this size: ``small_scales`` where its largest pass
+        still fits in ``max_side`` pixels per side, else ``scales``."""
+        s = self.settings
+        if s.small_scales and s.max_side and max(width, height) * max(s.small_scales) <= s.max_side:
+            return s.small_scales
+        return s.scales
+
     def probability(self, gray: np.ndarray):
         from .infer import probability_map
 
         s = self.settings
-        return probability_map(gray, self.backend, s.scales, s.max_side, s.tile, s.overlap)
+        scales = self.scales_for(gray.shape[1], gray.shape[0])
+        return probability_map(gray, self.backend, scales, s.max_side, s.tile, s.overlap)
 
     def detect(self, image: Any) -> DetectionResult:
         t0 = time.perf_counter()
@@ -253,7 +273,7 @@ class HMADetector:
         dets.sort(key=lambda d: -d.score)
         return DetectionResult(detections=dets, image_size=(w, h), probability=prob,
                                seconds=time.perf_counter() - t0,
-                               extras={"backend": self.backend.name, "scales": list(self.settings.scales),
+                               extras={"backend": self.backend.name, "scales": list(self.scales_for(w, h)),
                                        "probability_factor": pm.factor})
 
     # ------------------------------------------------------------------

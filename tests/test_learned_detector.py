@@ -130,6 +130,20 @@ def test_blobs_without_a_marker_are_cleared_unless_the_network_is_sure():
     assert np.allclose(raw[110:140, 180:210], 0.7, atol=1e-3)
 
 
+def test_small_images_get_the_extra_scale_within_max_side():
+    det = HMADetector.with_backend(OracleBackend(np.zeros((4, 4))))
+    assert det.scales_for(640, 480) == (0.5, 1.0, 2.0)
+    assert det.scales_for(1024, 700) == (0.5, 1.0, 2.0)
+    assert det.scales_for(1025, 700) == (0.5, 1.0)
+    assert det.scales_for(8192, 5460) == (0.5, 1.0)
+    off = HMADetector.with_backend(OracleBackend(np.zeros((4, 4))), small_scales=None)
+    assert off.scales_for(640, 480) == (0.5, 1.0)
+    img, mask, _ = rendered("circle", center=(100.3, 90.8), radius=20.0)
+    res = HMADetector.with_backend(OracleBackend(mask)).detect(img)
+    assert res.extras["scales"] == [0.5, 1.0, 2.0]
+    assert len(res.detections) == 1 and abs(res.detections[0].x - 100.3) < 0.15
+
+
 def test_settings_are_checked():
     with pytest.raises(UsageError, match="bogus"):
         get_detector("hma", bogus=1)
@@ -139,6 +153,8 @@ def test_settings_are_checked():
         get_detector("hma", backend="tensorflow")
     with pytest.raises(ValueError):
         HMADetector.with_backend(OracleBackend(np.zeros((4, 4))), threshold=1.5)
+    with pytest.raises(UsageError, match="small_scales"):
+        get_detector("hma", small_scales=[2.0])
     with pytest.raises(ValueError, match="clear_rejected_below"):
         HMADetector.with_backend(OracleBackend(np.zeros((4, 4))), clear_rejected_below=1.5)
     with pytest.raises(ValueError, match="max_sigma_verified_px"):
