@@ -14,7 +14,11 @@ Steps for one image (uint8 gray or BGR; a path is read as gray):
    occlusion and at the image border);
    Blobs that yield no marker, and that the network is not sure of (mean P < ``clear_rejected_below``),
    are cleared from the probability map the detector returns: louvers, window crosses, dark arches;
-4. type: from the marker model's outline fit at that centre (``type_by`` "model"); otherwise, or when
+4. keep or drop: with an instance model beside the weights (``instance_score.json``, see
+   :mod:`learned.instances`), a logistic model over the blob's confidence, shape and centre evidence
+   decides, and its probability is the detection's score; without one, rules do (a verified centre,
+   or a sharp one at the centroid, kept; score = mean P);
+5. type: from the marker model's outline fit at that centre (``type_by`` "model"); otherwise, or when
    the model does not fit, by shape: ellipse vs quadrilateral fit of the upsampled component outline
    (circle vs square sheet), then for quadrilaterals the phase of the checker's dark/bright
    boundaries relative to the outline edges (square: parallel to the edges; diagonal: through the
@@ -37,6 +41,8 @@ import numpy as np
 
 from cpdetect.detector import as_gray_uint8, settings_from_dataclass
 from cpdetect.types import DetectionResult, MarkerDetection
+
+from .instances import InstanceModel, blob_features, load_instance_model
 
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parent / "weights" / "default"
 
@@ -79,6 +85,11 @@ class HMASettings:
     seeds tried per instance besides the centroid (0 = centroid only). type_by: "model" (the
     classical outline fit at the centre, falling back to shape) or "shape". threads: torch CPU
     threads (default 1; None = leave torch's setting).
+    instance_model: "auto" (decide keep or drop with the instance model stored beside the weights,
+    :mod:`learned.instances`, when there is one) or "none" (the rules above). instance_threshold:
+    its cut on P(marker) (None = the one stored with it). max_sigma_seed_px: with an instance model,
+    a blob where no centre is verified or sharp still gets its best refined centre up to this
+    uncertainty, and the model decides.
     One thread per detector because cpdetect parallelises over images (``--workers``): torch's
     multi-threaded kernels on an oversubscribed CPU ran 20x slower here (13.7 against 0.71 s per
     megapixel with one other busy process on 2 cores).
@@ -102,6 +113,9 @@ class HMASettings:
     max_seeds: int = 3
     type_by: str = "model"
     threads: int | None = 1
+    instance_model: str = "auto"
+    instance_threshold: float | None = None
+    max_sigma_seed_px: float = 1.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "scales", tuple(float(s) for s in self.scales))
@@ -131,6 +145,12 @@ class HMASettings:
             raise ValueError(f"type_by must be model or shape, got {self.type_by!r}")
         if self.refine not in ("auto", "symmetry", "saddle", "hough", "none"):
             raise ValueError(f"unknown refine method {self.refine!r}")
+        if self.instance_model not in ("auto", "none"):
+            raise ValueError(f"instance_model must be auto or none, got {self.instance_model!r}")
+        if self.instance_threshold is not None and not 0.0 < self.instance_threshold < 1.0:
+            raise ValueError("instance_threshold must be in (0, 1) (or None)")
+        if not self.max_sigma_seed_px > 0:
+            raise ValueError("max_sigma_seed_px must be positive")
 
 
 def _quad_from_hull(hull: np.ndarray) -> np.ndarray | None:
@@ -232,14 +252,18 @@ class HMADetector:
 
         self.model_dir = model_dir
         self.backend = open_backend(model_dir, s.backend, s.device, s.threads)
+        self.instance_model = load_instance_model(model_dir) if s.instance_model == "auto" else None
 
     @classmethod
-    def with_backend(cls, backend: Any, **settings: Any) -> "HMADetector":
-        """A detector around an already opened backend (anything with ``name`` and ``trunk(x)``)."""
+    def with_backend(cls, backend: Any, instances: InstanceModel | None = None,
+                     **settings: Any) -> "HMADetector":
+        """A detector around an already opened backend (anything with ``name`` and ``trunk(x)``),
+        with an optional instance model (ignored when the setting ``instance_model`` is "none")."""
         self = cls.__new__(cls)
         self.settings = settings_from_dataclass(HMASettings, settings)
         self.model_dir = None
         self.backend = backend
+        self.instance_model = instances if self.settings.instance_model == "auto" else None
         return self
 
     # ------------------------------------------------------------------
@@ -277,15 +301,19 @@ class HMADetector:
                                        "probability_factor": pm.factor})
 
     # ------------------------------------------------------------------
-    def _instances(self, gray: np.ndarray, prob: np.ndarray, f: float) -> tuple[list[MarkerDetection], np.ndarray]:
-        """The marker instances, and the probability map with the rejected blobs cleared when
-        ``clear_rejected`` (else ``prob`` itself)."""
+    def candidates(self, gray: np.ndarray, prob: np.ndarray, f: float,
+                   loose: bool | None = None) -> tuple[list["BlobCandidate"], np.ndarray]:
+        """Every blob of ``prob`` (P(marker) at ``f`` processing pixels per image pixel) with what
+        decides about it: its centre (None when no seed refines to an acceptable X-corner, or for
+        blobs under ``min_radius_px``) and its instance features; and the component label map.
+        ``loose``: also give blobs whose best centre is only a refined seed (up to
+        ``max_sigma_seed_px``), as an instance model needs; None = when this detector has one."""
         s = self.settings
-        h, w = gray.shape
+        loose = self.instance_model is not None if loose is None else loose
         binary = (prob >= s.threshold).astype(np.uint8)
         n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
-        out: list[MarkerDetection] = []
-        rejected: list[int] = []
+        ph, pw = labels.shape
+        out: list[BlobCandidate] = []
         for k in range(1, n):
             x0, y0, bw, bh, area = (int(v) for v in stats[k])
             sl = (slice(y0, y0 + bh), slice(x0, x0 + bw))
@@ -293,35 +321,62 @@ class HMADetector:
             p = prob[sl] * comp
             wsum = float(p.sum())
             radius = math.sqrt(area / math.pi) / f  # equal-area radius, image pixels
-            # a blob that yields no marker is cleared from the map unless the network is sure of it
-            unsure = wsum / area < s.clear_rejected_below
-            if radius < s.min_radius_px:
-                if unsure:
-                    rejected.append(k)
-                continue
             yy, xx = np.mgrid[y0:y0 + bh, x0:x0 + bw]
             u, v = float((p * xx).sum() / wsum), float((p * yy).sum() / wsum)
-            cx, cy = (u + 0.5) / f - 0.5, (v + 0.5) / f - 0.5
-            score = float(np.clip(wsum / area, 0.0, 1.0))
-            sigma = max(0.5, 0.25 * radius)
+            blob = BlobCandidate(k, (x0, y0, bw, bh), radius, wsum / area, ((u + 0.5) / f - 0.5, (v + 0.5) / f - 0.5))
+            out.append(blob)
+            if radius < s.min_radius_px or s.refine == "none":
+                continue
+            c = self._refined_centre(gray, labels, f, k, blob.bbox, radius, blob.centroid, loose)
+            blob.centre = c
+            if c is not None:
+                blob.features = blob_features(
+                    radius, blob.mean_p, float(p.max()), float(np.count_nonzero(p >= 0.9)) / area,
+                    _solidity(comp, area), x0 == 0 or y0 == 0 or x0 + bw >= pw or y0 + bh >= ph,
+                    c.kind, c.sigma, math.hypot(c.x - blob.centroid[0], c.y - blob.centroid[1]) / radius,
+                    c.model_score)
+        return out, labels
+
+    def _instances(self, gray: np.ndarray, prob: np.ndarray, f: float) -> tuple[list[MarkerDetection], np.ndarray]:
+        """The marker instances, and the probability map with the rejected blobs cleared (unless the
+        network is sure of them, ``clear_rejected_below``)."""
+        s = self.settings
+        h, w = gray.shape
+        model = self.instance_model
+        cut = (s.instance_threshold if s.instance_threshold is not None else model.threshold) if model else None
+        blobs, labels = self.candidates(gray, prob, f)
+        out: list[MarkerDetection] = []
+        rejected: list[int] = []
+        for b in blobs:
+            # a blob that yields no marker is cleared from the map unless the network is sure of it
+            unsure = b.mean_p < s.clear_rejected_below
+            cx, cy = b.centroid
+            score = float(np.clip(b.mean_p, 0.0, 1.0))
+            sigma = max(0.5, 0.25 * b.radius)
             mtype = None
-            if s.refine != "none":
-                found = self._refined_centre(gray, labels, f, k, (x0, y0, bw, bh), radius, (cx, cy))
-                if found is None:
-                    if s.drop_unrefined:
-                        if unsure:
-                            rejected.append(k)
-                        continue  # no sharp X-corner on this blob: texture, or a neighbour's corner
+            keep = b.radius >= s.min_radius_px
+            if keep and s.refine != "none":
+                if b.centre is None:
+                    keep = not s.drop_unrefined  # no sharp X-corner on this blob: texture, or a neighbour's
                 else:
-                    cx, cy, sigma, mtype = found
+                    if model is not None:
+                        score = model.probability(b.features)
+                        keep = score >= cut
+                    cx, cy, sigma, mtype = b.centre.x, b.centre.y, b.centre.sigma, b.centre.type
+            if not keep:
+                if unsure:
+                    rejected.append(b.label)
+                continue
             if mtype is None:
-                mtype = self._type_by_shape(gray, p, (x0, y0), f, radius, cx, cy)
+                x0, y0, bw, bh = b.bbox
+                p = prob[y0:y0 + bh, x0:x0 + bw] * (labels[y0:y0 + bh, x0:x0 + bw] == b.label)
+                mtype = self._type_by_shape(gray, p, (x0, y0), f, b.radius, cx, cy)
             cx = float(np.clip(cx, -0.5, w - 0.5))
             cy = float(np.clip(cy, -0.5, h - 0.5))
-            out.append(MarkerDetection(x=cx, y=cy, score=score, type=mtype, radius_px=float(radius),
+            out.append(MarkerDetection(x=cx, y=cy, score=score, type=mtype, radius_px=float(b.radius),
                                        sigma_px=float(sigma)))
         if rejected:
-            clear = np.zeros(n, bool)
+            clear = np.zeros(len(blobs) + 1, bool)
             clear[rejected] = True
             prob = np.where(clear[labels], np.float32(0.0), prob)
         return dedupe(out), prob
@@ -344,15 +399,17 @@ class HMADetector:
             quad_img = (qp + 0.5) / f - 0.5
         return checker_phase_type(gray, cx, cy, radius, quad_img)
 
-    def _refined_centre(self, gray, labels, f, k, bbox, radius, centroid):
-        """The marker centre of component ``k`` (bbox in probability-map pixels): (x, y, sigma, type or
-        None) in image pixels, or None when no seed refines to a sharp X-corner.
+    def _refined_centre(self, gray, labels, f, k, bbox, radius, centroid, loose: bool = False) -> "_Centre | None":
+        """The marker centre of component ``k`` (bbox in probability-map pixels) in image pixels, or
+        None when no seed refines to an acceptable X-corner.
 
         Seeds: the strongest X-corners on the (dilated) component and the probability-weighted
         centroid (a poor seed alone under perspective, occlusion or the image border). Each is refined;
         a refined centre where the classical marker model fits (four sectors and an outline, see
         :func:`cpdetect.classical.verify_marker_at`) wins, which also types it (``type_by`` "model");
-        else the centroid's own refinement, if sharp (sigma <= max_sigma_px), typed by shape."""
+        else the centroid's own refinement, if sharp (sigma <= max_sigma_px), typed by shape; else,
+        when ``loose`` (for an instance model, which then judges it), the sharpest other refined seed
+        up to ``max_sigma_seed_px``."""
         from cpdetect.classical import verify_marker_at
         from cpdetect.refine import refine_center
         from cpdetect.xcorner import xcorner_seeds
@@ -376,26 +433,75 @@ class HMADetector:
 
         box = (int(bx0 / f), int(by0 / f), int(math.ceil(bx1 / f)), int(math.ceil(by1 / f)))
         seeds = [centroid] + [(x, y) for x, y, _ in xcorner_seeds(gray, box, radius, inside, s.max_seeds)]
-        fallback = None
+        checked = max(s.max_sigma_px, s.max_sigma_verified_px)
+        loosest = max(checked, s.max_sigma_seed_px) if loose else checked
+        fallback: _Centre | None = None
+        other: _Centre | None = None
         tried: list[tuple[float, float]] = []
         for i, (sx, sy) in enumerate(seeds):
             r = refine_center(gray, sx, sy, radius, method=s.refine)
-            if not (r.ok and r.sigma_px <= max(s.max_sigma_px, s.max_sigma_verified_px)):
+            if not (r.ok and r.sigma_px <= loosest):
+                continue
+            sigma = max(float(r.sigma_px), 1e-3)
+            if r.sigma_px > checked:
+                if other is None or sigma < other.sigma:
+                    other = _Centre(float(r.x), float(r.y), sigma, "seed")
                 continue
             if any(math.hypot(r.x - tx, r.y - ty) < 1.0 for tx, ty in tried):
                 continue
             tried.append((r.x, r.y))
-            found = (float(r.x), float(r.y), max(float(r.sigma_px), 1e-3))
             sharp = r.sigma_px <= s.max_sigma_px
+            found = _Centre(float(r.x), float(r.y), sigma, "centroid" if i == 0 and sharp else "seed")
             if i == 0 and sharp:
-                fallback = found + (None,)
+                fallback = found
+            elif other is None or sigma < other.sigma:
+                other = found
             if not (sharp or r.sigma_px <= s.max_sigma_verified_px):
                 continue
             v = verify_marker_at(gray, r.x, r.y, radius)
             if v is not None:
-                return found + (v[0] if s.type_by == "model" else None,)
-        return fallback
+                return _Centre(found.x, found.y, sigma, "verified", v[0] if s.type_by == "model" else None, v[2])
+        if fallback is not None:
+            return fallback
+        return other if loose else None
 
 
-__all__ = ["HMADetector", "HMASettings", "dedupe", "default_model_dir", "shipped_weights_present", "classify_shape",
+@dataclass
+class BlobCandidate:
+    """One connected component of P >= threshold: its label in the component map, bbox (x0, y0, w,
+    h) in processing pixels, equal-area radius and probability-weighted centroid in image pixels, mean
+    P; ``centre`` and ``features`` (learned.instances.blob_features) once a centre was found."""
+
+    label: int
+    bbox: tuple[int, int, int, int]
+    radius: float
+    mean_p: float
+    centroid: tuple[float, float]
+    centre: "_Centre | None" = None
+    features: dict | None = None
+
+
+@dataclass(frozen=True)
+class _Centre:
+    """A blob's centre (image pixels) with its uncertainty, how it was found (learned.instances
+    CENTRE_KINDS), the marker model's type and score there (None / 0 when it does not fit)."""
+
+    x: float
+    y: float
+    sigma: float
+    kind: str
+    type: str | None = None
+    model_score: float = 0.0
+
+
+def _solidity(comp: np.ndarray, area: int) -> float:
+    """Area of a component (bool mask) over the area of its convex hull."""
+    contours, _ = cv2.findContours(comp.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    if not contours:
+        return 1.0
+    hull = cv2.convexHull(np.concatenate(contours))
+    return float(area) / max(float(cv2.contourArea(hull)), 1.0)
+
+
+__all__ = ["HMADetector", "HMASettings", "BlobCandidate", "dedupe", "default_model_dir", "shipped_weights_present", "classify_shape",
            "checker_phase_type"]

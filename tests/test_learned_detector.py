@@ -253,12 +253,17 @@ def test_blobs_without_an_x_corner_are_dropped():
     assert len(kept) == 1 and abs(kept[0].x - 64) < 0.5 and abs(kept[0].y - 64) < 0.5
 
 
-def test_uncertain_refinements_are_dropped():
-    # a heavily blurred, noisy marker: refinement finds the X-corner but with a large sigma
+def blurred_noisy_marker():
+    """(image, mask) of a square marker under heavy blur and noise: refinement finds its X-corner,
+    but with a large sigma."""
     img, mask, _ = rendered("square", center=(128.0, 128.0), radius=26.0, angle=0.3)
     rng = np.random.default_rng(3)
     blurred = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 6.0)
-    noisy = np.clip(blurred + rng.normal(0, 12.0, img.shape), 0, 255).astype(np.uint8)
+    return np.clip(blurred + rng.normal(0, 12.0, img.shape), 0, 255).astype(np.uint8), mask
+
+
+def test_uncertain_refinements_are_dropped():
+    noisy, mask = blurred_noisy_marker()
     loose = HMADetector.with_backend(OracleBackend(mask), max_sigma_px=100.0).detect(noisy).detections
     assert len(loose) == 1
     sigma = loose[0].sigma_px

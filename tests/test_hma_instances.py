@@ -1,0 +1,138 @@
+"""The ``hma`` instance model (learned/instances.py): the logistic model, its file, its fit, and how
+the detector uses it to keep or drop blobs."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from cpdetect.errors import InputError
+from learned.adapter import HMADetector
+from learned.instances import (INSTANCE_FEATURES, INSTANCE_FILE, InstanceModel, blob_features,
+                               fit_instance_model, load_instance_model)
+from test_learned_detector import OracleBackend, blurred_noisy_marker, rendered
+
+
+def _model(bias: float, threshold: float = 0.5, **weights: float) -> InstanceModel:
+    n = len(INSTANCE_FEATURES)
+    w = [weights.get(k, 0.0) for k in INSTANCE_FEATURES]
+    return InstanceModel(mean=(0.0,) * n, std=(1.0,) * n, weights=tuple(w), bias=bias, threshold=threshold)
+
+
+def _feats(**over) -> dict:
+    f = blob_features(20.0, 0.95, 1.0, 0.9, 0.98, False, "verified", 0.05, 0.1, 0.8)
+    f.update(over)
+    return f
+
+
+def test_blob_features_are_the_documented_ones():
+    f = blob_features(20.0, 0.9, 0.99, 0.7, 1.5, True, "seed", 0.001, 5.0, 0.0)
+    assert tuple(f) == INSTANCE_FEATURES
+    assert f["log_radius"] == pytest.approx(math.log(20.0))
+    assert f["solidity"] == 1.3 and f["offset"] == 2.0  # capped
+    assert f["log_sigma"] == pytest.approx(math.log(0.01))  # floored
+    assert (f["verified"], f["centroid"], f["seed"], f["at_border"]) == (0.0, 0.0, 1.0, 1.0)
+    with pytest.raises(ValueError, match="kind"):
+        blob_features(20.0, 0.9, 0.99, 0.7, 1.0, False, "guess", 0.1, 0.1, 0.0)
+
+
+def test_probability_is_the_logistic_of_the_standardised_features():
+    n = len(INSTANCE_FEATURES)
+    rng = np.random.default_rng(1)
+    mean, std, w = rng.normal(size=n), rng.uniform(0.5, 2.0, n), rng.normal(size=n)
+    m = InstanceModel(tuple(mean), tuple(std), tuple(w), bias=-0.3, threshold=0.4)
+    f = _feats()
+    x = np.array([f[k] for k in INSTANCE_FEATURES])
+    z = ((x - mean) / std) @ w - 0.3
+    assert m.probability(f) == pytest.approx(1.0 / (1.0 + math.exp(-z)), rel=1e-12)
+    # the extremes stay finite
+    assert 0.0 <= _model(1e6).probability(f) <= 1.0 and 0.0 <= _model(-1e6).probability(f) <= 1.0
+
+
+def test_model_file_round_trip_and_bad_files(tmp_path):
+    m = _model(0.7, threshold=0.35, mean_p=2.0, verified=1.5)
+    path = m.save(tmp_path)
+    assert path.name == INSTANCE_FILE
+    back = load_instance_model(tmp_path)
+    assert back == m
+    assert load_instance_model(tmp_path / "nowhere") is None and load_instance_model(None) is None
+    (tmp_path / INSTANCE_FILE).write_text("{not json")
+    with pytest.raises(InputError, match=INSTANCE_FILE):
+        load_instance_model(tmp_path)
+    bad = m.to_dict()
+    bad["weights"] = bad["weights"][:-1]
+    (tmp_path / INSTANCE_FILE).write_text(json.dumps(bad))
+    with pytest.raises(InputError, match="weights"):
+        load_instance_model(tmp_path)
+    bad = dict(m.to_dict(), format="something-else")
+    (tmp_path / INSTANCE_FILE).write_text(json.dumps(bad))
+    with pytest.raises(InputError, match="format"):
+        load_instance_model(tmp_path)
+    with pytest.raises(ValueError, match="threshold"):
+        _model(0.0, threshold=1.0)
+
+
+def test_fit_separates_what_the_features_separate():
+    rng = np.random.default_rng(4)
+    rows, labels = [], []
+    for i in range(400):
+        marker = i % 2 == 0
+        kind = "verified" if marker and rng.random() < 0.8 else ("seed" if not marker else "centroid")
+        mean_p = float(np.clip(rng.normal(0.93 if marker else 0.75, 0.05), 0, 1))
+        rows.append(blob_features(rng.uniform(8, 60), mean_p, min(1.0, mean_p + 0.05), mean_p - 0.1,
+                                  rng.uniform(0.85, 1.0), False, kind, rng.uniform(0.02, 0.5), rng.uniform(0, 0.5),
+                                  float(rng.uniform(0.3, 1.0)) if kind == "verified" else 0.0))
+        labels.append(int(marker))
+    m = fit_instance_model(rows, labels, n_markers=220)
+    w = dict(zip(m.features, m.weights))
+    assert w["mean_p"] > 0 and w["verified"] > 0 and w["seed"] < 0
+    p = np.array([m.probability(r) for r in rows])
+    y = np.array(labels)
+    keep = p >= m.threshold
+    tp, fp = int(np.sum(keep & (y == 1))), int(np.sum(keep & (y == 0)))
+    assert tp >= 190 and fp <= 10
+    # the stored F1 is the marker-level one, with the 20 markers no blob reached counted as misses
+    assert m.fitted["f1_at_threshold"] == pytest.approx(2 * tp / (2 * tp + fp + 220 - tp), abs=1e-4)
+    with pytest.raises(ValueError, match="both kinds"):
+        fit_instance_model(rows[:50], [1] * 50, 50)
+
+
+def test_the_detector_keeps_or_drops_by_the_model_and_scores_with_it():
+    img, mask, _ = rendered("circle", center=(121.3, 133.6), radius=26.0, angle=0.5)
+    rules = HMADetector.with_backend(OracleBackend(mask)).detect(img).detections
+    assert len(rules) == 1 and rules[0].score > 0.99  # the rules' score: mean P
+    keep = _model(0.0, verified=2.0)  # P = 1 / (1 + exp(-2)) for a verified centre
+    kept = HMADetector.with_backend(OracleBackend(mask), instances=keep).detect(img).detections
+    assert len(kept) == 1 and kept[0].score == pytest.approx(1.0 / (1.0 + math.exp(-2.0)))
+    assert (kept[0].x, kept[0].y, kept[0].type) == (rules[0].x, rules[0].y, rules[0].type)
+    drop = _model(-1.0, verified=0.5)  # P = 0.38 < 0.5
+    res = HMADetector.with_backend(OracleBackend(mask), instances=drop).detect(img)
+    assert res.detections == []
+    assert res.probability[mask > 0].mean() > 0.95  # the network is sure: its map stays
+    # a cut of the caller's beats the stored one; the setting "none" ignores the model
+    assert len(HMADetector.with_backend(OracleBackend(mask), instances=drop,
+                                        instance_threshold=0.3).detect(img).detections) == 1
+    assert len(HMADetector.with_backend(OracleBackend(mask), instances=drop,
+                                        instance_model="none").detect(img).detections) == 1
+
+
+def test_with_a_model_an_unverified_seed_is_judged_instead_of_dropped():
+    # heavy blur and noise: the X-corner refines, but more loosely than the rules accept
+    noisy, mask = blurred_noisy_marker()
+    loose = HMADetector.with_backend(OracleBackend(mask), max_sigma_px=100.0).detect(noisy).detections
+    sigma = loose[0].sigma_px
+    strict = dict(max_sigma_px=0.5 * sigma, max_sigma_verified_px=0.5 * sigma)
+    assert HMADetector.with_backend(OracleBackend(mask), **strict).detect(noisy).detections == []
+    det = HMADetector.with_backend(OracleBackend(mask), instances=_model(3.0, seed=-1.0), **strict)
+    blobs, _ = det.candidates(noisy, det.probability(noisy).prob, 1.0)
+    assert len(blobs) == 1 and blobs[0].centre.kind == "seed"
+    assert blobs[0].features["seed"] == 1.0 and blobs[0].features["model_score"] == 0.0
+    found = det.detect(noisy).detections
+    assert len(found) == 1 and found[0].score == pytest.approx(1.0 / (1.0 + math.exp(-2.0)))
+    assert math.hypot(found[0].x - loose[0].x, found[0].y - loose[0].y) < 1e-9
+    # beyond max_sigma_seed_px even the model gets nothing to judge
+    det = HMADetector.with_backend(OracleBackend(mask), instances=_model(3.0), max_sigma_seed_px=0.5 * sigma,
+                                   **strict)
+    assert det.detect(noisy).detections == []
