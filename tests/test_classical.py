@@ -396,3 +396,31 @@ def test_sector_on_a_background_of_its_own_level(det, marker_type):
     assert len(near) == 1
     assert np.hypot(near[0].x - center[0], near[0].y - center[1]) < 0.1
     assert abs(near[0].radius_px / radius - 1) < 0.25
+
+
+def test_candidate_score_spares_verification_of_weak_saddles_not_of_markers():
+    from cpdetect.classical import CANDIDATE_FEATURES, ClassicalSettings, _Levels, _Verifier, candidate_score
+    from cpdetect.xcorner import build_pyramid
+
+    # a sharp marker-like X-corner whose Hessian contrast matches its sector contrast scores high; the
+    # same rings with a tenth of that Hessian contrast (a blurred texture saddle) score low
+    yy, xx = np.mgrid[0:160, 0:160].astype(np.float64)
+    ang = np.mod(np.arctan2(yy - 79.6, xx - 80.3) - 0.3, 2 * np.pi)
+    img = cv2.GaussianBlur(np.choose((ang // (np.pi / 2)).astype(int), (30, 220, 30, 220)).astype(np.float32),
+                           (0, 0), 0.8)
+    ver = _Verifier(_Levels(None, 1, build_pyramid(img)), ClassicalSettings(min_candidate_score=0.0), (160, 160))
+    xy, r0 = np.array([[80.3, 79.6]]), np.array([3.0])
+    assert ver.prefilter(xy, r0, chat=np.array([180.0]), level=np.array([0.0]))[0]
+    feats = ver.last_candidate_features
+    assert set(feats) == set(CANDIDATE_FEATURES)
+    assert 150.0 < np.exp(feats["log_c"][0]) <= 191.0  # 190 grey levels, a little less where blur mixes them
+    strong = float(candidate_score(feats)[0])
+    weak = float(candidate_score({**feats, "log_chat": feats["log_chat"] - np.log(10.0)})[0])
+    assert 0.0 <= weak < ClassicalSettings().min_candidate_score < strong <= 1.0
+    cut = ClassicalSettings(min_candidate_score=0.5 * (weak + strong))
+    ver = _Verifier(_Levels(None, 1, build_pyramid(img)), cut, (160, 160))
+    assert ver.prefilter(xy, r0, chat=np.array([180.0]), level=np.array([0.0]))[0]
+    assert not ver.prefilter(xy, r0, chat=np.array([18.0]), level=np.array([0.0]))[0]
+    assert ver.prefilter(xy, r0)[0]  # without the candidates' contrast: the fixed tests only
+    with pytest.raises(ValueError, match="min_candidate_score"):
+        ClassicalSettings(min_candidate_score=1.0)

@@ -1,0 +1,110 @@
+"""Fit the classical detector's candidate score (the prefilter's logistic model, CANDIDATE_FEATURES).
+
+Generates images with *train*-split backgrounds only (or reuses ``--data``), runs the detector's
+candidate stage (X-corner candidates and the prefilter's fixed tests) on each, labels every candidate
+that passes those tests by whether it lies on a true marker (cpdetect.evaluate.tolerance_px), fits a
+logistic regression (positives weighted 20x: a lost marker costs more than a wasted verification) and
+prints the constants to paste into cpdetect/classical.py (_CAND_MEAN, _CAND_STD, _CAND_W, _CAND_B,
+CANDIDATE_SCORE_CUT), the cut keeping ``--keep`` of the candidates on markers. Writes its figures to
+bench/results/fit_candidate_score.json.
+
+    .venv/bin/python bench/fit_candidate_score.py --n 400 --seed 11
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+RESULTS = Path(__file__).parent / "results" / "fit_candidate_score.json"
+
+
+def candidate_table(ds) -> tuple[np.ndarray, np.ndarray]:
+    import cv2
+
+    from cpdetect.classical import CANDIDATE_FEATURES, ClassicalDetector, _search_levels, _Verifier
+    from cpdetect.evaluate import tolerance_px
+    from cpdetect.xcorner import find_candidates
+
+    det = ClassicalDetector(min_candidate_score=0.0)
+    s = det.settings
+    X, y = [], []
+    for i, item in enumerate(ds.images):
+        gray = cv2.imread(str(ds.image_path(item)), cv2.IMREAD_GRAYSCALE)
+        h, w = gray.shape
+        k = det._search_factor(w, h)
+        _, pyramid, levels = _search_levels(gray, k)
+        cands = find_candidates(pyramid, 0.6 * s.min_contrast, s.max_candidates_per_level)
+        if not cands:
+            continue
+        ver = _Verifier(levels, s, (w, h))
+        xy = np.array([[(c.x + 0.5) * k - 0.5, (c.y + 0.5) * k - 0.5] for c in cands])
+        scale = np.array([k * 2.0 ** c.level for c in cands])
+        ver.last_candidate_features = None
+        passed = ver.prefilter(xy, np.maximum(1.5, 1.5 * scale), chat=np.array([c.contrast for c in cands]),
+                               level=np.array([c.level for c in cands], float))
+        feats = ver.last_candidate_features
+        if feats is None or not passed.any():
+            continue
+        # the features are those of the candidates that passed the fixed tests, in order
+        fx = np.stack([feats[f] for f in CANDIDATE_FEATURES], 1)
+        on = [any(math.hypot(t.x - px, t.y - py) <= tolerance_px(t.radius_px) for t in item.markers)
+              for px, py in xy[passed]]
+        X.append(fx)
+        y.extend(on)
+        if (i + 1) % 100 == 0 or i + 1 == len(ds.images):
+            print(f"candidates of {i + 1}/{len(ds.images)} images: {sum(len(a) for a in X)}", file=sys.stderr)
+    return np.concatenate(X), np.asarray(y, bool)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=400)
+    ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--data", default=None, help="existing dataset with train-split backgrounds")
+    ap.add_argument("--keep", type=float, default=0.995, help="share of the candidates on markers to keep")
+    ap.add_argument("--out", default=str(RESULTS))
+    args = ap.parse_args(argv)
+    from sklearn.linear_model import LogisticRegression
+
+    from cpdetect.classical import CANDIDATE_FEATURES
+    from cpdetect.dataset import load_dataset
+    from cpdetect.fileio import write_json_atomic
+    from cpdetect.synth_images import SynthImageOptions, write_synth_images
+
+    root = Path(args.data) if args.data else Path(tempfile.mkdtemp(prefix="cpdetect_fit_cand_"))
+    if not (root / "markers.json").exists():
+        write_synth_images(root, args.n, args.seed, SynthImageOptions(split="train"), workers=2)
+    ds = load_dataset(root)
+    splits = {im.meta.get("split") for im in ds.images} - {None}
+    if splits - {"train"}:
+        print(f"refusing to fit on backgrounds of split(s) {sorted(splits - {'train'})}: train only", file=sys.stderr)
+        return 2
+    X, y = candidate_table(ds)
+    mean, std = X.mean(0), X.std(0) + 1e-9
+    clf = LogisticRegression(C=1.0, max_iter=5000, class_weight={0: 1.0, 1: 20.0}).fit((X - mean) / std, y)
+    p = clf.predict_proba((X - mean) / std)[:, 1]
+    cut = float(np.quantile(p[y], 1.0 - args.keep))
+    kept_off = float(np.mean(p[~y] >= cut))
+    fmt = lambda a: "np.array([" + ", ".join(f"{v:.5g}" for v in a) + "])"  # noqa: E731
+    print(f"{len(y)} candidates ({int(y.sum())} on markers); cut {cut:.4g} keeps {args.keep:.3f} of those on markers "
+          f"and {kept_off:.3f} of the others")
+    print("_CAND_MEAN =", fmt(mean))
+    print("_CAND_STD =", fmt(std))
+    print("_CAND_W =", fmt(clf.coef_[0]))
+    print("_CAND_B =", f"{clf.intercept_[0]:.5g}")
+    print("CANDIDATE_SCORE_CUT =", f"{cut:.4g}")
+    write_json_atomic(args.out, {"data": str(root), "images": len(ds.images), "candidates": int(len(y)),
+                                 "on_markers": int(y.sum()), "keep": args.keep, "cut": cut,
+                                 "others_kept": kept_off, "features": list(CANDIDATE_FEATURES),
+                                 "mean": mean.tolist(), "std": std.tolist(), "weights": clf.coef_[0].tolist(),
+                                 "bias": float(clf.intercept_[0])})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
