@@ -15,10 +15,10 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
+from train_split import train_split_dataset
 
 RESULTS = Path(__file__).parent / "results" / "fit_candidate_score.json"
 
@@ -72,18 +72,10 @@ def main(argv=None) -> int:
     from sklearn.linear_model import LogisticRegression
 
     from cpdetect.classical import CANDIDATE_FEATURES
-    from cpdetect.dataset import load_dataset
     from cpdetect.fileio import write_json_atomic
-    from cpdetect.synth_images import SynthImageOptions, write_synth_images
 
-    root = Path(args.data) if args.data else Path(tempfile.mkdtemp(prefix="cpdetect_fit_cand_"))
-    if not (root / "markers.json").exists():
-        write_synth_images(root, args.n, args.seed, SynthImageOptions(split="train"), workers=2)
-    ds = load_dataset(root)
-    splits = {im.meta.get("split") for im in ds.images} - {None}
-    if splits - {"train"}:
-        print(f"refusing to fit on backgrounds of split(s) {sorted(splits - {'train'})}: train only", file=sys.stderr)
-        return 2
+    ds = train_split_dataset(args.data, args.n, args.seed, "cpdetect_fit_cand_")
+    root = ds.root
     X, y = candidate_table(ds)
     mean, std = X.mean(0), X.std(0) + 1e-9
     clf = LogisticRegression(C=1.0, max_iter=5000, class_weight={0: 1.0, 1: 20.0}).fit((X - mean) / std, y)

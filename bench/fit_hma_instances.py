@@ -12,14 +12,13 @@ F1 against the rules alone) go to bench/results/fit_hma_instances.json.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from train_split import train_split_dataset
 
 RESULTS = Path(__file__).parent / "results" / "fit_hma_instances.json"
 
@@ -113,21 +112,13 @@ def main(argv=None) -> int:
     ap.add_argument("--dry-run", action="store_true", help="fit and report, but do not write the model file")
     args = ap.parse_args(argv)
 
-    from cpdetect.dataset import load_dataset
     from cpdetect.fileio import write_json_atomic
-    from cpdetect.synth_images import SynthImageOptions, write_synth_images
     from learned.adapter import HMADetector, default_model_dir
     from learned.instances import fit_instance_model
 
     model_dir = Path(args.model_dir) if args.model_dir else default_model_dir()
-    root = Path(args.data) if args.data else Path(tempfile.mkdtemp(prefix="cpdetect_fit_hma_"))
-    if not (root / "markers.json").exists():
-        write_synth_images(root, args.n, args.seed, SynthImageOptions(split="train"), workers=2)
-    ds = load_dataset(root)
-    splits = {im.meta.get("split") for im in ds.images} - {None}
-    if splits - {"train"}:
-        print(f"refusing to fit on backgrounds of split(s) {sorted(splits - {'train'})}: train only", file=sys.stderr)
-        return 2
+    ds = train_split_dataset(args.data, args.n, args.seed, "cpdetect_fit_hma_")
+    root = ds.root
     t0 = time.time()
     det = HMADetector(model_dir=str(model_dir), instance_model="none")
     cache = Path(args.cache) if args.cache else root / "probability_maps"

@@ -14,10 +14,10 @@ import argparse
 import json
 import math
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
+from train_split import train_split_dataset
 
 
 def main(argv=None) -> int:
@@ -30,14 +30,9 @@ def main(argv=None) -> int:
     from sklearn.linear_model import LogisticRegression
 
     import cpdetect.classical as C
-    from cpdetect.dataset import load_dataset
     from cpdetect.evaluate import tolerance_px
-    from cpdetect.synth_images import SynthImageOptions, write_synth_images
 
-    root = Path(args.data) if args.data else Path(tempfile.mkdtemp(prefix="cpdetect_fit_"))
-    if not args.data:
-        write_synth_images(root, args.n, args.seed, SynthImageOptions(split="train"), workers=2)
-    ds = load_dataset(root)
+    ds = train_split_dataset(args.data, args.n, args.seed, "cpdetect_fit_")
     rows = []
     orig = C._Verifier.verify
 
