@@ -63,8 +63,8 @@ CANDIDATE_SCORE_CUT = 0.01777
 def candidate_score(feats: dict) -> np.ndarray:
     """P(on a marker) in [0, 1] of prefilter candidates from their feature arrays (CANDIDATE_FEATURES,
     each (n,)): a cheap look that spares the full verification most texture saddles."""
-    z = np.stack([(np.asarray(feats[k], float) - m) / sd for k, m, sd in zip(CANDIDATE_FEATURES, _CAND_MEAN, _CAND_STD)],
-                 axis=-1) @ _CAND_W + _CAND_B
+    x = np.stack([np.asarray(feats[k], float) for k in CANDIDATE_FEATURES], axis=-1)
+    z = ((x - _CAND_MEAN) / _CAND_STD) @ _CAND_W + _CAND_B
     return 1.0 / (1.0 + np.exp(-np.clip(z, -50.0, 50.0)))
 
 

@@ -503,5 +503,5 @@ def _solidity(comp: np.ndarray, area: int) -> float:
     return float(area) / max(float(cv2.contourArea(hull)), 1.0)
 
 
-__all__ = ["HMADetector", "HMASettings", "BlobCandidate", "dedupe", "default_model_dir", "shipped_weights_present", "classify_shape",
-           "checker_phase_type"]
+__all__ = ["HMADetector", "HMASettings", "BlobCandidate", "dedupe", "default_model_dir", "shipped_weights_present",
+           "classify_shape", "checker_phase_type"]
