@@ -10,9 +10,11 @@
    - ``cv2.cornerSubPix`` seeded at the true centre + U(-1, 1) px: centre error only, with the
      usual fixed 5x5 half-window and with a window adapted to the marker (our default_window);
    - our :func:`cpdetect.refine.refine_center` seeded the same way (isolates refinement).
-2. One 45 MP JPEG (8192x5460, an upscaled test background with markers): ``cv2.imread(GRAYSCALE)``
-   time vs ``ClassicalDetector().detect(path)`` time (medians), and the detector's peak memory
-   (ru_maxrss of a fresh subprocess, minus that of a subprocess that only imports the same modules).
+2. Two 45 MP JPEGs (8192x5460, six markers): ``cv2.imread(GRAYSCALE)`` time vs
+   ``ClassicalDetector().detect(path)`` time (medians), and the detector's peak memory (VmHWM of a
+   fresh subprocess, minus that after importing the same modules). One has a test background
+   upscaled 8x (smooth, so it decodes about three times faster than a camera's JPEG of that size);
+   the other a mosaic of test backgrounds at their own resolution (texture at every scale).
 
 Writes bench/results/detect_bench.json and prints a summary.
 
@@ -159,17 +161,45 @@ def bench_seeded_refiners(datasets, seed: int) -> dict:
     return res
 
 
-def make_45mp(path: Path, seed: int) -> list[dict]:
+def _mosaic(W: int, H: int, rng: np.random.Generator) -> np.ndarray:
+    """Test-split backgrounds tiled at their own resolution (random flips): real texture at every
+    scale, so the JPEG costs what a camera's does to decode."""
+    import cv2
+
+    from cpdetect.backgrounds import list_backgrounds
+
+    tiles = [cv2.imread(str(b.path), cv2.IMREAD_COLOR) for b in list_backgrounds("test")]
+    img = np.zeros((H, W, 3), np.uint8)
+    y = 0
+    while y < H:
+        x, row_h = 0, 0
+        while x < W:
+            t = tiles[int(rng.integers(len(tiles)))]
+            t = t[:, ::-1] if rng.random() < 0.5 else t
+            h, w = min(t.shape[0], H - y), min(t.shape[1], W - x)
+            img[y:y + h, x:x + w] = t[:h, :w]
+            x += w
+            row_h = max(row_h, h)
+        y += row_h
+    return img
+
+
+def make_45mp(path: Path, seed: int, texture: bool = False) -> list[dict]:
+    """A 8192x5460 JPEG (quality 92) with six markers (radius 24 to 400 px) and sensor noise, on a
+    test-split background upscaled 8x (smooth: decodes fast) or, with ``texture``, on a mosaic of
+    test-split backgrounds at their own resolution. Returns the markers' truth."""
     import cv2
 
     from cpdetect.backgrounds import list_backgrounds
     from cpdetect.markers import MarkerSpec, frontal_homography, projected_radius, render_marker
 
     rng = np.random.default_rng(seed)
-    bg = list_backgrounds("test")[0]
-    img = cv2.imread(str(bg.path), cv2.IMREAD_COLOR)
     W, H = 8192, 5460
-    img = cv2.resize(img, (W, H), interpolation=cv2.INTER_CUBIC).astype(np.float32)
+    if texture:
+        img = _mosaic(W, H, np.random.default_rng(seed + 2)).astype(np.float32)
+    else:
+        img = cv2.imread(str(list_backgrounds("test")[0].path), cv2.IMREAD_COLOR)
+        img = cv2.resize(img, (W, H), interpolation=cv2.INTER_CUBIC).astype(np.float32)
     truth = []
     for k, (r, mtype) in enumerate([(24, "square"), (60, "circle"), (150, "diagonal"), (400, "square"),
                                     (40, "diagonal"), (90, "circle")]):
@@ -212,13 +242,13 @@ print(base, peak, n)
 """
 
 
-def bench_45mp(tmp: Path, seed: int, repeats: int) -> dict:
+def bench_45mp(tmp: Path, seed: int, repeats: int, texture: bool = False) -> dict:
     import cv2
 
     from cpdetect.classical import ClassicalDetector
 
-    path = tmp / "big45.jpg"
-    truth = make_45mp(path, seed)
+    path = tmp / ("big45_texture.jpg" if texture else "big45.jpg")
+    truth = make_45mp(path, seed, texture)
     det = ClassicalDetector()
     t_read, t_det = [], []
     res = None
@@ -241,7 +271,9 @@ def bench_45mp(tmp: Path, seed: int, repeats: int) -> dict:
         base, peak, _ = (int(v) for v in out.stdout.split())
         mem[mode] = {"peak_rss_mb_after_imports": base / 1024, "peak_rss_mb": peak / 1024,
                      "increase_mb": (peak - base) / 1024}
-    return {"width": 8192, "height": 5460, "markers": len(truth), "found": int(sum(found)),
+    return {"background": "mosaic of test-split backgrounds at their own resolution" if texture else
+            "one test-split background upscaled 8x", "jpeg_mb": path.stat().st_size / 1e6,
+            "width": 8192, "height": 5460, "markers": len(truth), "found": int(sum(found)),
             "false_markers": len(res.detections) - int(sum(found)),
             "imread_gray_seconds_median": float(np.median(t_read)), "detect_seconds_median": float(np.median(t_det)),
             "ratio_detect_to_imread": float(np.median(t_det) / np.median(t_read)),
@@ -281,6 +313,7 @@ def main(argv=None) -> int:
     if not args.skip_45mp:
         print("45 MP ...", file=sys.stderr)
         report["jpeg_45mp"] = bench_45mp(tmp, args.seed, args.repeats)
+        report["jpeg_45mp_texture"] = bench_45mp(tmp, args.seed, args.repeats, texture=True)
     report["bench_seconds"] = time.time() - t0
     write_json_atomic(args.out, report)
 
@@ -298,9 +331,9 @@ def main(argv=None) -> int:
               f"centre mean {e.get('mean', float('nan')):.3f} p95 {e.get('p95', float('nan')):.3f} px  {v['seconds_per_image']*1000:.1f} ms/img")
     for k, v in report["seeded_refiners"].items():
         print(f"seeded {k:24s} mean {v['mean']:.3f}  median {v['median']:.3f}  p95 {v['p95']:.3f} px (n {v['n']})")
-    if "jpeg_45mp" in report:
-        j = report["jpeg_45mp"]
-        print(f"45 MP JPEG: imread gray {j['imread_gray_seconds_median']:.3f} s, detect {j['detect_seconds_median']:.3f} s, "
+    for j in (report[k] for k in ("jpeg_45mp", "jpeg_45mp_texture") if k in report):
+        print(f"45 MP JPEG on {j['background']} ({j['jpeg_mb']:.1f} MB):")
+        print(f"   imread gray {j['imread_gray_seconds_median']:.3f} s, detect {j['detect_seconds_median']:.3f} s, "
               f"ratio {j['ratio_detect_to_imread']:.2f}; found {j['found']}/{j['markers']}, false {j['false_markers']}; "
               f"peak RSS increase {j['memory']['detect']['increase_mb']:.0f} MB (imread alone "
               f"{j['memory']['imread']['increase_mb']:.0f} MB)")
