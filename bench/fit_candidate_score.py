@@ -44,11 +44,10 @@ def candidate_table(ds) -> tuple[np.ndarray, np.ndarray]:
         ver = _Verifier(levels, s, (w, h))
         xy = np.array([[(c.x + 0.5) * k - 0.5, (c.y + 0.5) * k - 0.5] for c in cands])
         scale = np.array([k * 2.0 ** c.level for c in cands])
-        ver.last_candidate_features = None
-        passed = ver.prefilter(xy, np.maximum(1.5, 1.5 * scale), chat=np.array([c.contrast for c in cands]),
-                               level=np.array([c.level for c in cands], float))
-        feats = ver.last_candidate_features
-        if feats is None or not passed.any():
+        passed, feats = ver.prefilter_features(xy, np.maximum(1.5, 1.5 * scale),
+                                               chat=np.array([c.contrast for c in cands]),
+                                               level=np.array([c.level for c in cands], float))
+        if not passed.any():
             continue
         # the features are those of the candidates that passed the fixed tests, in order
         fx = np.stack([feats[f] for f in CANDIDATE_FEATURES], 1)

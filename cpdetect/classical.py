@@ -355,12 +355,24 @@ class _Verifier:
 
     def prefilter(self, xy: np.ndarray, r_start: np.ndarray, q_min: float = 0.75, chat: np.ndarray | None = None,
                   level: np.ndarray | None = None) -> np.ndarray:
-        """Vectorised first look at many candidates (n, 2) full-res: four inner rings with a strong,
-        steady second angular harmonic (the test that opens :meth:`core`), plausible sector levels,
-        and, given the candidates' X-corner contrast ``chat`` and pyramid ``level``, a candidate score
-        (:func:`candidate_score`) of at least ``min_candidate_score``. Returns a bool (n,)."""
+        """Vectorised first look at many candidates (n, 2) full-res: the fixed tests of
+        :meth:`prefilter_features` and, given the candidates' X-corner contrast ``chat`` and pyramid
+        ``level``, a candidate score (:func:`candidate_score`) of at least ``min_candidate_score``.
+        Returns a bool (n,)."""
+        passed, feats = self.prefilter_features(xy, r_start, q_min, chat, level)
+        if feats is not None and self.s.min_candidate_score > 0 and passed.any():
+            passed[passed] = candidate_score(feats) >= self.s.min_candidate_score
+        return passed
+
+    def prefilter_features(self, xy: np.ndarray, r_start: np.ndarray, q_min: float = 0.75,
+                           chat: np.ndarray | None = None, level: np.ndarray | None = None
+                           ) -> tuple[np.ndarray, dict | None]:
+        """The prefilter's fixed tests on candidates (n, 2) full-res: four inner rings with a strong,
+        steady second angular harmonic (the test that opens :meth:`core`) and plausible sector
+        levels. Returns a bool (n,) and, given ``chat`` and ``level``, the CANDIDATE_FEATURES arrays
+        of the candidates that pass, in order (else None)."""
         if len(xy) == 0:
-            return np.zeros(0, bool)
+            return np.zeros(0, bool), None
         # eight rings over r_start .. 1.7 r_start: a marker's core is at least that long at the
         # level it is found on; texture saddles rarely keep a steady four-sector pattern so far
         f = 1.08 ** np.arange(8)
@@ -382,21 +394,21 @@ class _Verifier:
         change = sign != np.roll(sign, 1, axis=1)
         four = change.sum(1) == 4
         passed = ok & four & (q.min(1) >= q_min) & (dphi.max(1) <= math.radians(25))
-        if passed.any():
-            lv = self._sector_levels(P[passed], change[passed])
-            plausible = ((lv["C"] >= 0.7 * self.s.min_contrast) & (lv["opp"] <= 0.3) & (lv["spread"] <= 0.25))
-            if chat is not None and level is not None:
-                feats = dict(qmin=q[passed].min(1), qmean=q[passed].mean(1), dphi=dphi[passed].max(1),
-                             log_c=np.log(lv["C"]), opp=lv["opp"], spread=lv["spread"], mid=lv["mid"],
-                             log_std_ratio=np.log(std[passed, -1] / std[passed, 0]),
-                             log_chat=np.log(np.maximum(np.asarray(chat, float)[passed], 1.0)),
-                             level=np.asarray(level, float)[passed])
-                # (for bench/fit_candidate_score.py: the candidates that pass the fixed tests)
-                self.last_candidate_features = {k: v[plausible] for k, v in feats.items()}
-                if self.s.min_candidate_score > 0:
-                    plausible &= candidate_score(feats) >= self.s.min_candidate_score
-            passed[passed] = plausible
-        return passed
+        want = chat is not None and level is not None
+        if not passed.any():
+            return passed, ({k: np.zeros(0) for k in CANDIDATE_FEATURES} if want else None)
+        lv = self._sector_levels(P[passed], change[passed])
+        plausible = (lv["C"] >= 0.7 * self.s.min_contrast) & (lv["opp"] <= 0.3) & (lv["spread"] <= 0.25)
+        feats = None
+        if want:
+            feats = dict(qmin=q[passed].min(1), qmean=q[passed].mean(1), dphi=dphi[passed].max(1),
+                         log_c=np.log(lv["C"]), opp=lv["opp"], spread=lv["spread"], mid=lv["mid"],
+                         log_std_ratio=np.log(std[passed, -1] / std[passed, 0]),
+                         log_chat=np.log(np.maximum(np.asarray(chat, float)[passed], 1.0)),
+                         level=np.asarray(level, float)[passed])
+            feats = {k: v[plausible] for k, v in feats.items()}
+        passed[passed] = plausible
+        return passed, feats
 
     def _sector_levels(self, P: np.ndarray, change: np.ndarray) -> dict:
         """Vectorised forms of :meth:`core`'s level measures on the prefilter rings P (n, rings, N_THETA)

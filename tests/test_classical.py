@@ -411,7 +411,7 @@ def test_candidate_score_spares_verification_of_weak_saddles_not_of_markers():
     ver = _Verifier(_Levels(None, 1, build_pyramid(img)), ClassicalSettings(min_candidate_score=0.0), (160, 160))
     xy, r0 = np.array([[80.3, 79.6]]), np.array([3.0])
     assert ver.prefilter(xy, r0, chat=np.array([180.0]), level=np.array([0.0]))[0]
-    feats = ver.last_candidate_features
+    _, feats = ver.prefilter_features(xy, r0, chat=np.array([180.0]), level=np.array([0.0]))
     assert set(feats) == set(CANDIDATE_FEATURES)
     assert 150.0 < np.exp(feats["log_c"][0]) <= 191.0  # 190 grey levels, a little less where blur mixes them
     strong = float(candidate_score(feats)[0])
