@@ -14,11 +14,14 @@ continues from ``checkpoint.pt`` at the saved iteration.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
 import os
+import signal
 import sys
+import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -85,6 +88,7 @@ class TrainResult:
     best_iou: float | None
     last_val: dict | None
     seconds: float
+    interrupted: bool = False  # stopped by SIGINT/SIGTERM; the checkpoint holds ``iterations``
 
 
 OPTIMIZERS = ("sgd", "adamw")
@@ -276,8 +280,6 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
     weights = HMALossWeights(rmi_scope=cfg.rmi_scope)
     stats = RMIStats()
     log_path = out / LOG_FILE
-    last_ckpt = time.time()
-    last_val = None
     bar = None
     if progress:
         from tqdm import tqdm
@@ -287,9 +289,58 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
     model.train()
     if cfg.freeze_backbone:
         set_bn_eval(model.backbone)
+    stop = _StopRequest()
+    with stop.installed():
+        it, last_val, best = _loop(cfg, model, opt, train_ds, val_batches, device, base_lr, total, weights, stats,
+                                   log_path, bar, on_iteration, stop, it, best)
+    if bar is not None:
+        bar.close()
+    if stop.signum is not None:
+        _save_checkpoint(ckpt_path, model, opt, it, best, cfg)
+        log.warning("stopped by signal %d at iteration %d; checkpoint written to %s (continue with --resume)",
+                    stop.signum, it, ckpt_path)
+        return TrainResult(out, it, best, last_val, time.time() - t_start, interrupted=True)
+    if not (out / "model.pt").exists():
+        save_model(model, out, extra={"iteration": it})
+    return TrainResult(out, it, best, last_val, time.time() - t_start)
+
+
+class _StopRequest:
+    """SIGINT / SIGTERM during training ask the loop to stop after the current iteration, so that the
+    checkpoint is written at that iteration instead of losing up to ``checkpoint_minutes`` of work (a
+    killed job, a closed terminal, Ctrl-C). Handlers are installed only in the main thread and restored
+    afterwards."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+
+    def _handle(self, signum, frame) -> None:
+        self.signum = signum
+
+    @contextlib.contextmanager
+    def installed(self):
+        if threading.current_thread() is not threading.main_thread():
+            yield self
+            return
+        old = {sig: signal.signal(sig, self._handle) for sig in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            yield self
+        finally:
+            for sig, handler in old.items():
+                signal.signal(sig, handler)
+
+
+def _loop(cfg, model, opt, train_ds, val_batches, device, base_lr, total, weights, stats, log_path, bar,
+          on_iteration, stop: _StopRequest, it: int, best: float | None):
+    """The iterations from ``it`` to ``total`` (or until ``stop`` is signalled); returns (iteration,
+    last validation, best validation IoU)."""
+    out = Path(cfg.out)
+    ckpt_path = out / CHECKPOINT
+    last_ckpt = time.time()
+    last_val = None
     run_loss: list[float] = []
     t_iter = time.time()
-    while it < total:
+    while it < total and stop.signum is None:
         epoch, b = divmod(it, cfg.iters_per_epoch)
         train_ds.set_epoch(epoch)
         x, y = _collate([train_ds[b * cfg.batch + j] for j in range(cfg.batch)])
@@ -336,11 +387,7 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
         if end_of_epoch or time.time() - last_ckpt > 60.0 * cfg.checkpoint_minutes:
             _save_checkpoint(ckpt_path, model, opt, it, best, cfg)
             last_ckpt = time.time()
-    if bar is not None:
-        bar.close()
-    if not (out / "model.pt").exists():
-        save_model(model, out, extra={"iteration": it})
-    return TrainResult(out, it, best, last_val, time.time() - t_start)
+    return it, last_val, best
 
 
 __all__ = ["TrainConfig", "TrainResult", "train", "evaluate", "init_from", "read_state", "pick_device"]

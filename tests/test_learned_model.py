@@ -346,6 +346,35 @@ def test_training_is_deterministic_and_resume_continues_exactly(tmp_path, optimi
     assert load_model(tmp_path / "a").config.name == "test_micro"
 
 
+def test_a_signal_stops_training_with_a_checkpoint_at_that_iteration(tmp_path):
+    """SIGTERM (a killed job) mid-epoch: the run returns at once, marked interrupted, with the
+    checkpoint at the current iteration (not the last periodic one), and resuming it ends where an
+    uninterrupted run ends. The handlers are restored afterwards."""
+    import os
+    import signal
+
+    from learned.train import train
+
+    s = _tiny_samples()
+    ref = train(_cfg(tmp_path / "ref", epochs=2, iters_per_epoch=3), samples=s[:2], val_samples=s[2:],
+                progress=False)
+    before = signal.getsignal(signal.SIGTERM)
+
+    def term_at_4(it, parts):
+        if it == 4:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    cfg = _cfg(tmp_path / "c", epochs=2, iters_per_epoch=3, checkpoint_minutes=60.0)
+    r = train(cfg, samples=s[:2], val_samples=s[2:], progress=False, on_iteration=term_at_4)
+    assert r.interrupted and r.iterations == 4
+    assert signal.getsignal(signal.SIGTERM) is before
+    assert torch.load(tmp_path / "c" / "checkpoint.pt", weights_only=False)["iteration"] == 4
+    r2 = train(cfg, resume=True, samples=s[:2], val_samples=s[2:], progress=False)
+    assert not r2.interrupted and r2.iterations == ref.iterations == 6
+    w_ref, w = _weights(tmp_path / "ref"), _weights(tmp_path / "c")
+    assert max(float((w_ref[k].float() - w[k].float()).abs().max()) for k in w_ref) < 1e-6
+
+
 def test_training_from_init_with_other_class_count_and_frozen_backbone(tmp_path):
     from learned.train import train
 

@@ -12,7 +12,8 @@ def register(sub) -> None:
                                    "'cpdetect synth images' writes, or your own annotated photos with "
                                    "masks). MODELDIR receives config.json + model.pt (best by validation "
                                    "IoU), checkpoint.pt (for --resume) and train_log.jsonl. CPU by "
-                                   "default, CUDA when present.")
+                                   "default, CUDA when present. Ctrl-C or SIGTERM stops after the "
+                                   "current iteration with a checkpoint at it (exit status 130).")
     p.add_argument("--data", required=True, help="training dataset folder (markers.json, images/, masks/)")
     p.add_argument("--out", required=True, help="model folder to write")
     p.add_argument("--val-data", help="validation dataset folder (default: hold out --val-frac of --data)")
@@ -72,6 +73,10 @@ def run(args) -> int:
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     best = "n/a" if res.best_iou is None else f"{res.best_iou:.4f}"
+    if res.interrupted:
+        log.error("interrupted at iteration %d (best validation IoU %s); continue with the same command and "
+                  "--resume", res.iterations, best)
+        return 130
     log.info("trained %d iterations in %.0f s; best validation IoU %s; model in %s", res.iterations,
              res.seconds, best, res.out)
     return 0
