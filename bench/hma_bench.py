@@ -2,10 +2,13 @@
 
 1. ONNX vs PyTorch: largest |P_torch - P_opencv| (learned.export.check_parity) at two input sizes,
    scales (1.0,) and (0.5, 1.0).
-2. A 45 MP gray image (8256 x 5504: a generated test-split image upscaled, so it holds markers):
-   median wall time of ``probability_map`` (downscale to max_side, OpenCV DNN) and of the full
-   ``detect`` (instances and refinement on the full-resolution image), for the OpenCV backend; peak
-   RSS of a fresh subprocess that reads the image and runs one detection.
+2. The two 45 MP JPEGs of bench/detect_bench.py (8192 x 5460, six markers of radius 24 to 400 px with
+   known centres; one on a test-split background upscaled 8x, one on a mosaic of test-split
+   backgrounds at their own resolution), for the OpenCV backend: median wall time of
+   ``probability_map`` (downscale to max_side, OpenCV DNN) and of the full ``detect`` (instances and
+   refinement on the full-resolution image) on the decoded gray image, markers found (centre within
+   max(3, 0.25 radius) px), false detections and centre errors; peak RSS of a fresh subprocess that
+   reads the image and runs one detection.
 3. Model files: parameters, model.pt / model.onnx sizes.
 
 Writes bench/results/hma_bench.json and prints it.
@@ -16,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import subprocess
 import sys
 import time
@@ -26,31 +30,35 @@ import numpy as np
 RESULTS = Path(__file__).parent / "results" / "hma_bench.json"
 
 
-def big_image(seed: int = 5) -> np.ndarray:
-    import tempfile
+_MEM_CHILD = r"""
+import sys
+def hwm():
+    # peak resident set (kB) of this process; ru_maxrss would report the parent's peak (fork)
+    for line in open("/proc/self/status"):
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1])
+try:
+    with open("/proc/self/clear_refs", "w") as fh:
+        fh.write("5")  # resets VmHWM to the current RSS (Linux >= 4.0)
+except OSError:
+    pass
+import cv2
+from cpdetect import get_detector
+d = get_detector("hma", model_dir=sys.argv[1], backend="opencv")
+base = hwm()
+img = cv2.imread(sys.argv[2], cv2.IMREAD_GRAYSCALE)
+d.detect(img)
+print(base, hwm())
+"""
 
-    import cv2
 
-    from cpdetect.synth_images import SynthImageOptions, write_synth_images
-
-    with tempfile.TemporaryDirectory() as tmp:
-        opt = SynthImageOptions(width=2064, height=1376, split="test", markers=(3, 5), empty_prob=0.0)
-        write_synth_images(tmp, 1, seed, opt)
-        img = cv2.imread(str(next(Path(tmp, "images").iterdir())), cv2.IMREAD_GRAYSCALE)
-    return cv2.resize(img, (8256, 5504), interpolation=cv2.INTER_CUBIC)
-
-
-def peak_rss_mb(model_dir: str, path: str) -> float:
-    """Peak RSS (MB) of a fresh process that decodes the 45 MP gray image and detects on it once."""
-    code = (
-        "import resource, cv2, numpy as np\n"
-        "from cpdetect import get_detector\n"
-        f"d = get_detector('hma', model_dir={model_dir!r}, backend='opencv')\n"
-        f"img = cv2.imread({path!r}, cv2.IMREAD_GRAYSCALE)\n"
-        "d.detect(img)\n"
-        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    return float(out.stdout.strip().splitlines()[-1])
+def peak_rss_mb(model_dir: str, path: str) -> dict:
+    """Peak RSS (MB) of a fresh process that decodes the 45 MP gray image and detects on it once, and
+    its increase over the process with the detector loaded."""
+    out = subprocess.run([sys.executable, "-c", _MEM_CHILD, model_dir, path], capture_output=True, text=True,
+                         check=True)
+    base, peak = (int(v) for v in out.stdout.split())
+    return {"peak_rss_mb": peak / 1024, "increase_mb": (peak - base) / 1024}
 
 
 def main() -> int:
@@ -62,6 +70,7 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--model-dir", default=str(default_model_dir()))
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--seed", type=int, default=2024, help="seed of the 45 MP images (detect_bench's default)")
     args = ap.parse_args()
     d = Path(args.model_dir)
     res: dict = {"model_dir": str(d), "cv2": cv2.__version__}
@@ -77,29 +86,41 @@ def main() -> int:
     for name in ("model.pt", "model.onnx"):
         if (d / name).exists():
             res[f"{name}_MB"] = (d / name).stat().st_size / 1e6
-    img = big_image()
-    res["image"] = {"width": img.shape[1], "height": img.shape[0]}
     ob = OpenCVBackend(d / "model.onnx")
     from cpdetect import get_detector
+    from detect_bench import make_45mp
 
     det = get_detector("hma", model_dir=str(d), backend="opencv")
-    tp, td = [], []
-    for _ in range(args.repeats):
-        t = time.perf_counter()
-        probability_map(img, ob, (1.0,), max_side=2048, tile=2048)
-        tp.append(time.perf_counter() - t)
-        t = time.perf_counter()
-        r = det.detect(img)
-        td.append(time.perf_counter() - t)
-    res["probability_map_s_median"] = float(np.median(tp))
-    res["detect_s_median"] = float(np.median(td))
-    res["detections_45mp"] = len(r.detections)
     import tempfile
 
     with tempfile.TemporaryDirectory() as tmp:
-        p = str(Path(tmp) / "big.png")
-        cv2.imwrite(p, img)
-        res["detect_process_peak_rss_MB"] = peak_rss_mb(str(d), p)
+        for key, texture in (("jpeg_45mp", False), ("jpeg_45mp_texture", True)):
+            path = Path(tmp) / f"{key}.jpg"
+            truth = make_45mp(path, args.seed, texture)
+            img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+            tp, td = [], []
+            for _ in range(args.repeats):
+                t = time.perf_counter()
+                probability_map(img, ob, (0.5, 1.0), max_side=2048, tile=2048)
+                tp.append(time.perf_counter() - t)
+                t = time.perf_counter()
+                r = det.detect(img)
+                td.append(time.perf_counter() - t)
+            errors, per_marker = [], []
+            for t in truth:
+                dist = [math.hypot(m.x - t["x"], m.y - t["y"]) for m in r.detections]
+                hit = bool(dist) and min(dist) <= max(3.0, 0.25 * t["radius_px"])
+                if hit:
+                    errors.append(min(dist))
+                per_marker.append({"type": t["type"], "radius_px": round(t["radius_px"], 1),
+                                   "centre_error_px": round(min(dist), 4) if hit else None})
+            res[key] = {"width": img.shape[1], "height": img.shape[0], "markers": len(truth),
+                        "found": len(errors), "false_markers": len(r.detections) - len(errors),
+                        "centre_error_px_mean": float(np.mean(errors)) if errors else None,
+                        "per_marker": per_marker,
+                        "probability_map_s_median": float(np.median(tp)),
+                        "detect_s_median": float(np.median(td)),
+                        "detect_process_memory": peak_rss_mb(str(d), str(path))}
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(res, indent=1) + "\n")
     print(json.dumps(res, indent=1))
