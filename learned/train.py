@@ -308,13 +308,16 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
 class _StopRequest:
     """SIGINT / SIGTERM during training ask the loop to stop after the current iteration, so that the
     checkpoint is written at that iteration instead of losing up to ``checkpoint_minutes`` of work (a
-    killed job, a closed terminal, Ctrl-C). Handlers are installed only in the main thread and restored
-    afterwards."""
+    killed job, a closed terminal, Ctrl-C); a second signal stops at once. Handlers are installed only
+    in the main thread and restored afterwards."""
 
     def __init__(self) -> None:
         self.signum: int | None = None
 
     def _handle(self, signum, frame) -> None:
+        if self.signum is not None:
+            # asked twice: stop now, without the checkpoint (the periodic one stays)
+            raise KeyboardInterrupt if signum == signal.SIGINT else SystemExit(128 + signum)
         self.signum = signum
 
     @contextlib.contextmanager

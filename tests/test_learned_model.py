@@ -375,6 +375,23 @@ def test_a_signal_stops_training_with_a_checkpoint_at_that_iteration(tmp_path):
     assert max(float((w_ref[k].float() - w[k].float()).abs().max()) for k in w_ref) < 1e-6
 
 
+def test_a_second_signal_stops_at_once():
+    import signal
+
+    from learned.train import _StopRequest
+
+    stop = _StopRequest()
+    stop._handle(signal.SIGINT, None)
+    assert stop.signum == signal.SIGINT
+    with pytest.raises(KeyboardInterrupt):
+        stop._handle(signal.SIGINT, None)
+    stop = _StopRequest()
+    stop._handle(signal.SIGTERM, None)
+    with pytest.raises(SystemExit) as exc:
+        stop._handle(signal.SIGTERM, None)
+    assert exc.value.code == 128 + signal.SIGTERM
+
+
 def test_training_from_init_with_other_class_count_and_frozen_backbone(tmp_path):
     from learned.train import train
 
