@@ -231,6 +231,10 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
             val_samples = samples_from_dataset(cfg.val_data)
         else:
             samples, val_samples = split_samples(samples, cfg.val_frac, cfg.seed)
+    if not resume and ckpt_path.exists():
+        # hours of CPU live in that checkpoint: never start over it silently
+        raise UsageError(f"{out} already holds a training run ({CHECKPOINT}); continue it with --resume, "
+                         f"or choose another --out")
     aug = cfg.augment if cfg.augment.crop == cfg.crop else AugmentConfig(**{**asdict(cfg.augment), "crop": cfg.crop})
     train_ds = CropDataset(samples, aug, cfg.iters_per_epoch * cfg.batch, cfg.seed)
     val_batches: list[tuple[torch.Tensor, torch.Tensor]] = []

@@ -409,6 +409,18 @@ def test_training_from_init_with_other_class_count_and_frozen_backbone(tmp_path)
     assert ft["cls_head.6.weight"].shape[0] == 2
 
 
+def test_a_new_run_refuses_to_overwrite_a_checkpoint(tmp_path):
+    from cpdetect.errors import UsageError
+    from learned.train import train
+
+    s = _tiny_samples()
+    train(_cfg(tmp_path / "m", epochs=1), samples=s[:2], val_samples=s[2:], progress=False)
+    before = (tmp_path / "m" / "checkpoint.pt").read_bytes()
+    with pytest.raises(UsageError, match="already holds a training run.*--resume"):
+        train(_cfg(tmp_path / "m", epochs=1), samples=s[:2], val_samples=s[2:], progress=False)
+    assert (tmp_path / "m" / "checkpoint.pt").read_bytes() == before
+
+
 def test_unknown_optimizer_is_refused(tmp_path):
     from learned.train import train
 
