@@ -220,7 +220,8 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
     torch.set_num_threads(max(1, int(cfg.threads)))
     device = pick_device(cfg.device)
     out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"{out}: --out must be a folder, this is a file")
     ckpt_path = out / CHECKPOINT
 
     if samples is None:
@@ -278,6 +279,8 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
         best = checkpoint.get("best_iou")
         torch.set_rng_state(checkpoint["torch_rng"])
         log.info("resumed from %s at iteration %d (best IoU %s)", ckpt_path, it, best)
+    # the folder appears only once the inputs are good (a failed start leaves nothing behind)
+    out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "train_args.json", _jsonable(cfg))
 
     total = cfg.epochs * cfg.iters_per_epoch

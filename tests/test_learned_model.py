@@ -470,3 +470,10 @@ def test_cli_train_resume_export_and_detect(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "missing" in err[0]
     assert main(["train", "--data", str(data), "--out", str(out), "--crop", "100"]) == 2
+    # bad starts name the problem and leave no folder behind
+    capsys.readouterr()
+    assert main(["train", "--data", str(data), "--out", str(tmp_path / "new"), "--init", str(tmp_path / "nope")]) == 2
+    assert "nope" in capsys.readouterr().err and not (tmp_path / "new").exists()
+    (tmp_path / "afile").write_text("x")
+    assert main(["train", "--data", str(data), "--out", str(tmp_path / "afile")]) == 2
+    assert "must be a folder" in capsys.readouterr().err
