@@ -153,10 +153,17 @@ def resize_to_np(x: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
     return np.stack([cv2.resize(c, (w, h), interpolation=cv2.INTER_LINEAR) for c in x])
 
 
+LOGIT_LIMIT = 1e4  # stands in for an infinite logit: far beyond any finite one, and a * p stays finite
+
+
 def fuse_scales(backend: TrunkBackend, x: np.ndarray, scales: Sequence[float]) -> np.ndarray:
     """Hierarchical multi-scale fusion of class logits over ``scales`` (must contain 1.0), at x's size.
 
-    Identical recursion to :meth:`learned.hma.HMAModel.nscale_forward` (hma.md section 1.5).
+    Identical recursion to :meth:`learned.hma.HMAModel.nscale_forward` (hma.md section 1.5). Logits
+    that are not finite become +-LOGIT_LIMIT (a saturated pixel stays saturated; NaN: 0) and the
+    attention is clipped to [0, 1]: the OpenCV DNN path returned +inf logits for a barely trained
+    network on a 32x48 input (1 run in 5 of a CLI test), and inf times a zero attention weight is NaN,
+    which would spread through the resize.
     """
     ss = sorted({float(s) for s in scales}, reverse=True)
     if 1.0 not in ss:
@@ -164,6 +171,9 @@ def fuse_scales(backend: TrunkBackend, x: np.ndarray, scales: Sequence[float]) -
     pred = None
     for s in ss:
         p, a = backend.trunk(resize_scale_np(x, s))
+        if not np.isfinite(p).all():
+            p = np.nan_to_num(p, nan=0.0, posinf=LOGIT_LIMIT, neginf=-LOGIT_LIMIT)
+        a = np.clip(np.nan_to_num(a, nan=0.5), 0.0, 1.0)
         if pred is None:
             pred = p
         elif s >= 1.0:

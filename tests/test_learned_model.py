@@ -222,6 +222,24 @@ def test_onnx_through_opencv_matches_torch_at_two_sizes(tmp_path):
             assert pt.std() > 1e-4  # not a constant map
 
 
+def test_fusion_stays_finite_when_a_backend_returns_infinite_logits():
+    from learned.infer import fuse_scales, marker_probability_np
+
+    class Saturated:
+        name = "saturated"
+
+        def trunk(self, x):
+            p = np.zeros((2,) + x.shape, np.float32)
+            p[1] = np.inf  # certain marker everywhere
+            p[1, 0, 0] = np.nan
+            return p, np.zeros(x.shape, np.float32)
+
+    logits = fuse_scales(Saturated(), np.full((32, 48), 0.4, np.float32), (0.5, 1.0, 2.0))
+    assert np.isfinite(logits).all()
+    prob = marker_probability_np(logits)
+    assert prob.shape == (32, 48) and prob[5:, 5:].min() > 0.999
+
+
 def test_tiles_partition_the_axis():
     from learned.infer import tiles
 
