@@ -213,7 +213,8 @@ def make_45mp(path: Path, seed: int, texture: bool = False) -> list[dict]:
     return truth
 
 
-_MEM_CHILD = r"""
+# the start of a child process that measures its own peak memory (also used by hma_bench.py)
+MEM_PRELUDE = r"""
 import sys, time
 def hwm():
     # peak resident set (kB) of this process; ru_maxrss would include the parent's peak (fork)
@@ -227,6 +228,9 @@ def reset():
     except OSError:
         pass
 reset()
+"""
+
+_MEM_CHILD = MEM_PRELUDE + r"""
 import cv2, numpy as np
 from cpdetect.classical import ClassicalDetector
 det = ClassicalDetector()

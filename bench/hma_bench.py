@@ -31,17 +31,6 @@ RESULTS = Path(__file__).parent / "results" / "hma_bench.json"
 
 
 _MEM_CHILD = r"""
-import sys
-def hwm():
-    # peak resident set (kB) of this process; ru_maxrss would report the parent's peak (fork)
-    for line in open("/proc/self/status"):
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1])
-try:
-    with open("/proc/self/clear_refs", "w") as fh:
-        fh.write("5")  # resets VmHWM to the current RSS (Linux >= 4.0)
-except OSError:
-    pass
 import cv2
 from cpdetect import get_detector
 d = get_detector("hma", model_dir=sys.argv[1], backend="opencv")
@@ -55,8 +44,10 @@ print(base, hwm())
 def peak_rss_mb(model_dir: str, path: str) -> dict:
     """Peak RSS (MB) of a fresh process that decodes the 45 MP gray image and detects on it once, and
     its increase over the process with the detector loaded."""
-    out = subprocess.run([sys.executable, "-c", _MEM_CHILD, model_dir, path], capture_output=True, text=True,
-                         check=True)
+    from detect_bench import MEM_PRELUDE
+
+    out = subprocess.run([sys.executable, "-c", MEM_PRELUDE + _MEM_CHILD, model_dir, path], capture_output=True,
+                         text=True, check=True)
     base, peak = (int(v) for v in out.stdout.split())
     return {"peak_rss_mb": peak / 1024, "increase_mb": (peak - base) / 1024}
 

@@ -298,8 +298,57 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
         set_bn_eval(model.backbone)
     stop = _StopRequest()
     with stop.installed():
-        it, last_val, best = _loop(cfg, model, opt, train_ds, val_batches, device, base_lr, total, weights, stats,
-                                   log_path, bar, on_iteration, stop, it, best)
+        last_ckpt = time.time()
+        last_val = None
+        run_loss: list[float] = []
+        t_iter = time.time()
+        while it < total and stop.signum is None:
+            epoch, b = divmod(it, cfg.iters_per_epoch)
+            train_ds.set_epoch(epoch)
+            x, y = _collate([train_ds[b * cfg.batch + j] for j in range(cfg.batch)])
+            x, y = x.to(device), y.to(device)
+            if cfg.channels_last:
+                x = x.contiguous(memory_format=torch.channels_last)
+            lr = base_lr * (1.0 - it / total) ** cfg.poly
+            for g in opt.param_groups:
+                g["lr"] = lr
+            outd = model(x)
+            loss, parts = hma_loss(outd, y, weights, stats)
+            if not math.isfinite(parts["total"]):
+                raise RuntimeError(f"loss is not finite at iteration {it}: {parts}")
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            it += 1
+            run_loss.append(parts["total"])
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{parts['total']:.3f}", lr=f"{lr:.4g}", refresh=False)
+            if on_iteration is not None:
+                on_iteration(it, parts)
+            if it % cfg.log_every == 0 or it == total:
+                now = time.time()
+                _append_log(log_path, {"iteration": it, "epoch": epoch, "lr": lr, "loss": float(np.mean(run_loss)),
+                                       **{f"last_{k}": v for k, v in parts.items()},
+                                       "cholesky_failures": stats.cholesky_failures,
+                                       "s_per_it": (now - t_iter) / max(len(run_loss), 1), "time": now})
+                run_loss, t_iter = [], now
+            end_of_epoch = it % cfg.iters_per_epoch == 0 or it == total
+            if end_of_epoch:
+                if val_batches:
+                    last_val = evaluate(model, val_batches, cfg.val_scales, device)
+                    if cfg.freeze_backbone:
+                        set_bn_eval(model.backbone)
+                    _append_log(log_path, {"iteration": it, "epoch": epoch, "val": last_val, "time": time.time()})
+                    log.info("iteration %d: validation IoU %.4f F1 %.4f", it, last_val["iou"], last_val["f1"])
+                    if best is None or last_val["iou"] > best:
+                        best = last_val["iou"]
+                        save_model(model, out, extra={"iteration": it, "val": last_val})
+                else:
+                    save_model(model, out, extra={"iteration": it})
+            if end_of_epoch or time.time() - last_ckpt > 60.0 * cfg.checkpoint_minutes:
+                _save_checkpoint(ckpt_path, model, opt, it, best, cfg)
+                last_ckpt = time.time()
     if bar is not None:
         bar.close()
     if stop.signum is not None:
@@ -338,66 +387,6 @@ class _StopRequest:
         finally:
             for sig, handler in old.items():
                 signal.signal(sig, handler)
-
-
-def _loop(cfg, model, opt, train_ds, val_batches, device, base_lr, total, weights, stats, log_path, bar,
-          on_iteration, stop: _StopRequest, it: int, best: float | None):
-    """The iterations from ``it`` to ``total`` (or until ``stop`` is signalled); returns (iteration,
-    last validation, best validation IoU)."""
-    out = Path(cfg.out)
-    ckpt_path = out / CHECKPOINT
-    last_ckpt = time.time()
-    last_val = None
-    run_loss: list[float] = []
-    t_iter = time.time()
-    while it < total and stop.signum is None:
-        epoch, b = divmod(it, cfg.iters_per_epoch)
-        train_ds.set_epoch(epoch)
-        x, y = _collate([train_ds[b * cfg.batch + j] for j in range(cfg.batch)])
-        x, y = x.to(device), y.to(device)
-        if cfg.channels_last:
-            x = x.contiguous(memory_format=torch.channels_last)
-        lr = base_lr * (1.0 - it / total) ** cfg.poly
-        for g in opt.param_groups:
-            g["lr"] = lr
-        outd = model(x)
-        loss, parts = hma_loss(outd, y, weights, stats)
-        if not math.isfinite(parts["total"]):
-            raise RuntimeError(f"loss is not finite at iteration {it}: {parts}")
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        it += 1
-        run_loss.append(parts["total"])
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix(loss=f"{parts['total']:.3f}", lr=f"{lr:.4g}", refresh=False)
-        if on_iteration is not None:
-            on_iteration(it, parts)
-        if it % cfg.log_every == 0 or it == total:
-            now = time.time()
-            _append_log(log_path, {"iteration": it, "epoch": epoch, "lr": lr, "loss": float(np.mean(run_loss)),
-                                   **{f"last_{k}": v for k, v in parts.items()},
-                                   "cholesky_failures": stats.cholesky_failures,
-                                   "s_per_it": (now - t_iter) / max(len(run_loss), 1), "time": now})
-            run_loss, t_iter = [], now
-        end_of_epoch = it % cfg.iters_per_epoch == 0 or it == total
-        if end_of_epoch:
-            if val_batches:
-                last_val = evaluate(model, val_batches, cfg.val_scales, device)
-                if cfg.freeze_backbone:
-                    set_bn_eval(model.backbone)
-                _append_log(log_path, {"iteration": it, "epoch": epoch, "val": last_val, "time": time.time()})
-                log.info("iteration %d: validation IoU %.4f F1 %.4f", it, last_val["iou"], last_val["f1"])
-                if best is None or last_val["iou"] > best:
-                    best = last_val["iou"]
-                    save_model(model, out, extra={"iteration": it, "val": last_val})
-            else:
-                save_model(model, out, extra={"iteration": it})
-        if end_of_epoch or time.time() - last_ckpt > 60.0 * cfg.checkpoint_minutes:
-            _save_checkpoint(ckpt_path, model, opt, it, best, cfg)
-            last_ckpt = time.time()
-    return it, last_val, best
 
 
 __all__ = ["TrainConfig", "TrainResult", "train", "evaluate", "init_from", "read_state", "pick_device"]
