@@ -108,6 +108,34 @@ def test_each_method_on_a_clean_marker(method, tol):
     assert np.hypot(res.x - c[0], res.y - c[1]) < tol
 
 
+@pytest.mark.parametrize("side", [1.2, 2.0, 3.5])
+def test_occluder_inside_the_window_is_left_out(side):
+    # a grey blob over one sector, inside the full fitting window but clear of the centre: the
+    # full-window symmetry fit is pulled by it, auto's smaller windows are not
+    img, c, r = render((90.4, 89.7), 30.0, angle=0.4, blur=0.7, shape=(180, 180))
+    t = np.linspace(0, 2 * np.pi, 9)[:-1]
+    blob = c + 0.55 * r * np.array([np.cos(side), np.sin(side)]) \
+        + 8.0 * (1 + 0.3 * np.sin(3 * t))[:, None] * np.stack([np.cos(t), np.sin(t)], 1)
+    cv2.fillPoly(img, [np.round(blob * 16).astype(np.int32)], 95.0, cv2.LINE_AA, 4)
+    full = refine_center(img, c[0] + 0.8, c[1] - 0.6, r, method="symmetry")
+    res = refine_center(img, c[0] + 0.8, c[1] - 0.6, r)
+    assert np.hypot(full.x - c[0], full.y - c[1]) > 0.04
+    assert res.ok and np.hypot(res.x - c[0], res.y - c[1]) < 0.02
+
+
+def test_centre_near_the_image_border():
+    # centre 4 px above the bottom edge: the pairs of the full window leave the image, and a fit on
+    # a smoothing that mirrors at the border is pulled toward it
+    img, c, r = render((90.4, 89.7), 25.0, angle=0.3, blur=0.7, shape=(200, 180))
+    crop = img[:int(round(c[1] + 4.0))]
+    res = refine_center(crop, c[0] + 0.8, c[1] - 0.6, r)
+    assert res.ok and np.hypot(res.x - c[0], res.y - c[1]) < 0.05
+    # the saddle fit says it cannot see past the border rather than answer 0.8 px off with a 0.09 px sigma
+    img40, c40, r40 = render((90.4, 89.7), 40.0, angle=0.3, blur=0.7, shape=(200, 180))
+    sad = refine_center(img40[:int(round(c40[1] + 4.0))], c40[0] + 0.8, c40[1] - 0.6, r40, method="saddle")
+    assert not sad.ok and "border" in sad.reason
+
+
 def test_paper_hough_lines_are_near_orthogonal_pair():
     # a clean axis-aligned marker: the Hough intersection lands on the corner within 0.2 px
     img, c, r = render((80.0, 80.0), 40.0, angle=0.0, shape=(170, 170), blur=0.6)
