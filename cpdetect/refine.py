@@ -26,9 +26,9 @@ Methods (``method=``):
     linear illumination gradient g), with d on a disc (or, given a perspective hint, an ellipse)
     adapted to the marker size. Seeded by ``"saddle"``.
 ``"auto"`` (default)
-    ``"symmetry"`` seeded by ``"saddle"`` on the full window, and on 0.7, 0.5 and 0.35 of it seeded
-    at the caller's point; the fit with the smallest sigma is kept (an occluder or the image border
-    spoils the large windows first). When none holds, whichever of ``"saddle"`` and ``"hough"``
+    ``"symmetry"`` seeded by ``"saddle"`` on the full window and, when that fit's sigma is over
+    0.05 px, on 0.7, 0.5 and 0.35 of it seeded at the caller's point; the fit with the smallest sigma
+    is kept (an occluder or the image border spoils the large windows first). When none holds, whichever of ``"saddle"`` and ``"hough"``
     succeeded with the smaller uncertainty. When symmetry succeeds but is uncertain (sigma over
     0.15 px: a shadow edge or occluder across the centre), ``"hough"`` replaces it if it agrees within
     1 px at under half the sigma (a shadow along a boundary line: 0.40 -> 0.22 px).
@@ -45,9 +45,9 @@ from dataclasses import dataclass
 import numpy as np
 
 METHODS = ("auto", "symmetry", "saddle", "hough")
-# "auto" fits the symmetry at these fractions of the window and keeps the fit with the smallest sigma
-WINDOW_FRACTIONS = (1.0, 0.7, 0.5, 0.35)
-# ... unless the full window's fit is already this certain (px)
+# "auto" also fits the symmetry on these fractions of the window, unless the full window's fit is
+# already this certain (px), and keeps the fit with the smallest sigma
+SMALLER_WINDOWS = (0.7, 0.5, 0.35)
 CONFIDENT_SIGMA_PX = 0.05
 
 
@@ -471,27 +471,25 @@ def refine_center(gray: np.ndarray, x0: float, y0: float, radius_px: float, meth
     # strong tilt spoil large windows first, and the fit's sigma says which held (on 2,461 detector
     # seeds near occluders and image borders, dev and train-split sets: mean error 0.078 -> 0.054 px,
     # on the occluded markers 0.161 -> 0.075 px)
-    fits = []
-    for frac in WINDOW_FRACTIONS:
-        if frac < 1.0 and frac * w < 2.5:
-            break
-        # the smaller windows start from the caller's seed: an occluder at the centre can pull the
-        # saddle seed off (same seeds, before the saddle border fix: 0.057 px; both seeds for every
-        # window 0.059, the saddle seed for all 0.063)
-        sx, sy = seed if frac == 1.0 else (x0, y0)
-        fits.append(refine_symmetry(gray, sx, sy, radius_px, window_px=frac * w, max_shift_px=shift,
-                                    shape_hint=shape_hint))
-        if fits[0].ok and fits[0].sigma_px <= CONFIDENT_SIGMA_PX:
-            break  # a clean fit: smaller windows would only add noise and time
+    fits = [refine_symmetry(gray, seed[0], seed[1], radius_px, window_px=w, max_shift_px=shift,
+                            shape_hint=shape_hint)]
+    if not (fits[0].ok and fits[0].sigma_px <= CONFIDENT_SIGMA_PX):  # else smaller ones add only noise
+        for frac in SMALLER_WINDOWS:
+            if frac * w < 2.5:
+                break
+            # from the caller's seed: an occluder at the centre can pull the saddle seed off (same
+            # seeds, before the saddle border fix: 0.057 px; both seeds for every window 0.059, the
+            # saddle seed for all 0.063)
+            fits.append(refine_symmetry(gray, x0, y0, radius_px, window_px=frac * w, max_shift_px=shift,
+                                        shape_hint=shape_hint))
     held = [f for f in fits if f.ok and np.hypot(f.x - x0, f.y - y0) <= shift]
     if held:
         return _unless_lines_do_better(gray, min(held, key=lambda f: f.sigma_px), x0, y0, radius_px, kw)
-    sym = fits[0]
     # fall-backs are less robust: keep them only close to the seed
     others = [r for r in (sad, refine_hough(gray, x0, y0, radius_px, **kw))
               if r.ok and np.hypot(r.x - x0, r.y - y0) <= 0.5 * shift]
     if not others:
-        return _fail(x0, y0, "auto", f"symmetry: {sym.reason}; saddle: {sad.reason}")
+        return _fail(x0, y0, "auto", f"symmetry: {fits[0].reason}; saddle: {sad.reason}")
     return min(others, key=lambda r: r.sigma_px)
 
 
