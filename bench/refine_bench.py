@@ -29,11 +29,11 @@ RESULTS = Path(__file__).parent / "results" / "refine_bench.json"
 
 
 def _stats(errors: list[float]) -> dict:
+    """detect_bench's error summary of the finite errors, with the failures and the count over 0.5 px."""
+    from detect_bench import _stats as summary
+
     a = np.asarray([e for e in errors if np.isfinite(e)], float)
-    if a.size == 0:
-        return {"n": 0, "failed": len(errors)}
-    return {"n": int(a.size), "failed": int(len(errors) - a.size), "mean": float(a.mean()),
-            "median": float(np.median(a)), "p95": float(np.percentile(a, 95)), "over_0.5px": int((a > 0.5).sum())}
+    return dict(summary(a), failed=int(len(errors) - a.size), **{"over_0.5px": int((a > 0.5).sum())})
 
 
 def hard(marker, width: int, height: int) -> bool:

@@ -28,10 +28,11 @@ Methods (``method=``):
 ``"auto"`` (default)
     ``"symmetry"`` seeded by ``"saddle"`` on the full window and, when that fit's sigma is over
     0.05 px, on 0.7, 0.5 and 0.35 of it seeded at the caller's point; the fit with the smallest sigma
-    is kept (an occluder or the image border spoils the large windows first). When none holds, whichever of ``"saddle"`` and ``"hough"``
-    succeeded with the smaller uncertainty. When symmetry succeeds but is uncertain (sigma over
-    0.15 px: a shadow edge or occluder across the centre), ``"hough"`` replaces it if it agrees within
-    1 px at under half the sigma (a shadow along a boundary line: 0.40 -> 0.22 px).
+    is kept (an occluder or the image border spoils the large windows first). When none holds,
+    whichever of ``"saddle"`` and ``"hough"`` succeeded with the smaller uncertainty. When symmetry
+    succeeds but is uncertain (sigma over 0.15 px: a shadow edge or occluder across the centre),
+    ``"hough"`` replaces it if it agrees within 1 px at under half the sigma (a shadow along a
+    boundary line: 0.40 -> 0.22 px).
 
 The window is always derived from the marker's apparent radius (``radius_px``; a fraction of it,
 clamped), never fixed: a fixed window either straddles the marker boundary on small markers or
@@ -470,7 +471,7 @@ def refine_center(gray: np.ndarray, x0: float, y0: float, radius_px: float, meth
     # the window that fits best: a full one uses most signal, but an occluder, the image border or a
     # strong tilt spoil large windows first, and the fit's sigma says which held (on 2,461 detector
     # seeds near occluders and image borders, dev and train-split sets: mean error 0.078 -> 0.054 px,
-    # on the occluded markers 0.161 -> 0.075 px)
+    # on the occluded markers 0.161 -> 0.075 px; bench/refine_bench.py repeats it on 400 images)
     fits = [refine_symmetry(gray, seed[0], seed[1], radius_px, window_px=w, max_shift_px=shift,
                             shape_hint=shape_hint)]
     if not (fits[0].ok and fits[0].sigma_px <= CONFIDENT_SIGMA_PX):  # else smaller ones add only noise
