@@ -26,7 +26,14 @@ Pipeline for one image:
    in between; **radius_px** from the outline area.
 5. **Centre** by :func:`cpdetect.refine.refine_center` on the full-resolution image, window adapted to
    the radius; **sigma_px** from the fit.
-6. **Probability map** at search resolution: the filled outline of each accepted marker (1 inside).
+6. **Colour pass** (colour images, ``colour_pass``): steps 2-5 again on the *paint* image, the max of
+   the three channels at search resolution, for markers painted red or orange on black whose
+   luminance contrast is weak (red weighs 0.3 in gray: some show none at all). Only X-corners at
+   least ``colour_gain`` times stronger in paint than in gray are verified, only scores of
+   ``colour_min_score`` kept, and the centre comes from whichever of gray and paint fits with the
+   smaller sigma. For a JPEG searched at reduced size the paint image is decoded at that size
+   directly. On train-split dev sets: recall +2.3 and +1.3 points, no more false markers, 10 % more time.
+7. **Probability map** at search resolution: the filled outline of each accepted marker (1 inside).
 
 All positions reported are full-resolution pixels, OpenCV convention.
 """
@@ -35,7 +42,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -82,6 +89,10 @@ class ClassicalSettings:
     min_candidate_score: X-corner candidates whose prefilter score (:func:`candidate_score`) is below
         this are not verified (0 verifies every candidate that passes the fixed prefilter tests).
     refine_method: "auto", "symmetry", "saddle" or "hough" (see cpdetect.refine).
+    colour_pass: for colour images, also search the max-of-channels image for painted markers whose
+        luminance contrast is weak (red or orange on black).
+    colour_gain: the colour pass verifies only X-corners this many times stronger there than in gray.
+    colour_min_score: least score of a marker found by the colour pass only.
     probability_map: compute the probability map (filled outlines).
     """
 
@@ -93,6 +104,9 @@ class ClassicalSettings:
     min_score: float = 0.2
     min_candidate_score: float = CANDIDATE_SCORE_CUT
     refine_method: str = "auto"
+    colour_pass: bool = True
+    colour_gain: float = 1.5
+    colour_min_score: float = 0.5
     probability_map: bool = True
 
     def __post_init__(self) -> None:
@@ -108,6 +122,10 @@ class ClassicalSettings:
             raise ValueError(f"unknown refine_method {self.refine_method!r}")
         if not 0.0 <= self.min_candidate_score < 1.0:
             raise ValueError("min_candidate_score must be in [0, 1)")
+        if not self.colour_gain >= 1.0:
+            raise ValueError("colour_gain must be >= 1")
+        if not 0.0 <= self.colour_min_score <= 1.0:
+            raise ValueError("colour_min_score must be in [0, 1]")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -1045,17 +1063,35 @@ class ClassicalDetector:
     def detect(self, image: Any) -> DetectionResult:
         t0 = time.perf_counter()
         if isinstance(image, (str, os.PathLike)):
-            from .imageio import read_image
-
-            gray = read_image(image, gray=True)
+            gray, paint = self._read(image)
         else:
-            a = np.asarray(image)
-            if a.dtype != np.uint8:
-                raise ValueError(f"expected a uint8 image, got {a.dtype}")
-            gray = as_gray_uint8(a)
-        res = self._detect_gray(gray)
+            gray, paint = self._from_array(image)
+        res = self._detect_gray(gray, paint)
         res.seconds = time.perf_counter() - t0
         return res
+
+    def _read(self, path) -> tuple[np.ndarray, np.ndarray | None]:
+        """Gray image (full resolution) and paint image (search resolution, or None) of a file."""
+        from .imageio import probe_image, read_image
+
+        if not self.settings.colour_pass:
+            return read_image(path, gray=True), None
+        info = probe_image(path)
+        k = self._search_factor(info.width, info.height)
+        if info.format == "jpeg" and k > 1:
+            # the colour pass searches at reduced size only, where a JPEG decodes directly
+            return read_image(path, gray=True), paint_image(read_image(path, reduce=k))
+        return self._from_array(read_image(path))
+
+    def _from_array(self, image: Any) -> tuple[np.ndarray, np.ndarray | None]:
+        a = np.asarray(image)
+        if a.dtype != np.uint8:
+            raise ValueError(f"expected a uint8 image, got {a.dtype}")
+        gray = as_gray_uint8(a)
+        if not (self.settings.colour_pass and a.ndim == 3 and a.shape[2] >= 3):
+            return gray, None
+        paint = paint_image(np.ascontiguousarray(a[:, :, :3]))
+        return gray, _reduced(paint, self._search_factor(gray.shape[1], gray.shape[0]))
 
     def _search_factor(self, w: int, h: int) -> int:
         for k in (1, 2, 4, 8):
@@ -1063,28 +1099,86 @@ class ClassicalDetector:
                 return k
         return 8
 
-    def _detect_gray(self, gray: np.ndarray) -> DetectionResult:
+    def _detect_gray(self, gray: np.ndarray, paint: np.ndarray | None = None) -> DetectionResult:
+        """Detect on ``gray`` (full resolution); ``paint``: the max-of-channels image of a colour
+        photo at search resolution (see :func:`paint_image`) for the colour pass, or None."""
         import cv2
 
         s = self.settings
         h, w = gray.shape
         k = self._search_factor(w, h)
         search, pyramid, levels = _search_levels(gray, k)
-        cands = find_candidates(pyramid, 0.6 * s.min_contrast, s.max_candidates_per_level)
-        verifier = _Verifier(levels, s, (w, h))
+        gray_c: list[np.ndarray] = []
+        cands = find_candidates(pyramid, 0.6 * s.min_contrast, s.max_candidates_per_level, maps=gray_c)
         accepted: list[tuple[_Verified, Any]] = []
+        scan = _Scan(gray, k, s, accepted)
+        rejected = scan.run(levels, cands, s.min_score)
+        extras = {"search_factor": k, "candidates": len(cands), "prefiltered": scan.prefiltered, "rejected": rejected}
+        if paint is not None and s.colour_pass:
+            extras.update(self._colour_pass(scan, gray_c, paint))
+        accepted.sort(key=lambda t: -t[0].score)
+        dets = [MarkerDetection(float(np.clip(v.x, -0.5, w - 0.5)), float(np.clip(v.y, -0.5, h - 0.5)),
+                                float(v.score), v.type, float(v.radius), float(sigma)) for v, sigma in accepted]
+        prob = None
+        if s.probability_map:
+            sh, sw = search.shape
+            prob = np.zeros((sh, sw), np.float32)
+            for v, _ in accepted:
+                poly = ((v.outline + 0.5) / k - 0.5) * 16.0
+                cv2.fillPoly(prob, [np.round(poly).astype(np.int32)], 1.0, lineType=cv2.LINE_AA, shift=4)
+            np.clip(prob, 0.0, 1.0, out=prob)
+        return DetectionResult(dets, (w, h), prob, 0.0, extras)
+
+    def _colour_pass(self, scan: "_Scan", gray_c: list[np.ndarray], paint: np.ndarray) -> dict:
+        """Second search on the paint image, for markers whose paint differs from the dark quadrants
+        in colour more than in luminance (red on black: a third of the contrast in gray, sometimes
+        none). Only X-corners at least ``colour_gain`` times stronger in paint than in gray are
+        verified (the others were seen by the gray pass), and only scores of ``colour_min_score``
+        are kept (the paint image loses the luminance edge between coloured paint and a white margin)."""
+        s = self.settings
+        ppyr = build_pyramid(paint)
+        pc = find_candidates(ppyr, 0.6 * s.min_contrast, s.max_candidates_per_level)
+        keep = []
+        for c in pc:
+            if c.level >= len(gray_c):
+                continue
+            g, sc = gray_c[c.level], 2.0 ** c.level
+            ix, iy = int(round((c.x + 0.5) / sc - 0.5)), int(round((c.y + 0.5) / sc - 0.5))
+            near = g[max(iy - 1, 0):iy + 2, max(ix - 1, 0):ix + 2]
+            if near.size == 0 or c.contrast >= s.colour_gain * float(near.max()):
+                keep.append(c)
+        plevels = _Levels(None, scan.k, ppyr)
+        n0 = len(scan.accepted)
+        rejected = scan.run(plevels, keep, max(s.min_score, s.colour_min_score), paint_search=paint)
+        return {"colour_candidates": len(keep), "colour_found": len(scan.accepted) - n0,
+                "colour_rejected": rejected}
+
+
+class _Scan:
+    """Verifies and refines candidates of one pass, appending to ``accepted`` ((_Verified, sigma))."""
+
+    def __init__(self, gray: np.ndarray, k: int, settings: ClassicalSettings, accepted: list):
+        self.gray, self.k, self.s, self.accepted = gray, k, settings, accepted
+        self.prefiltered = 0
+
+    def run(self, levels: "_Levels", cands: list, min_score: float, paint_search: np.ndarray | None = None) -> int:
+        """Candidates (search-image pixels) checked against ``levels``; the number rejected."""
+        s, k, gray, accepted = self.s, self.k, self.gray, self.accepted
+        h, w = gray.shape
+        verifier = _Verifier(levels, s, (w, h))
         rejected = 0
         # coarse levels first: big markers are settled before their centres show again at fine levels
-        cands.sort(key=lambda c: (-c.level, -c.contrast))
+        cands = sorted(cands, key=lambda c: (-c.level, -c.contrast))
         cand_xy = np.array([[(c.x + 0.5) * k - 0.5, (c.y + 0.5) * k - 0.5] for c in cands]).reshape(-1, 2)
         cand_c = np.array([c.contrast for c in cands])
         cand_scale = np.array([k * 2.0 ** c.level for c in cands])
         # one vectorised look at every candidate's inner rings before the per-candidate work
         passed = verifier.prefilter(cand_xy, np.maximum(1.5, 1.5 * cand_scale), chat=cand_c,
                                     level=np.array([c.level for c in cands], float))
+        self.prefiltered += int(passed.sum())
         for ci, c in enumerate(cands):
             scale = k * 2 ** c.level
-            cx, cy = (c.x + 0.5) * k - 0.5, (c.y + 0.5) * k - 0.5
+            cx, cy = cand_xy[ci]
             if any(math.hypot(cx - v.x, cy - v.y) < max(0.5 * v.radius, 2.0 * scale) for v, _ in accepted):
                 continue
             r_start = max(1.5, 1.5 * scale)
@@ -1092,7 +1186,7 @@ class ClassicalDetector:
                 rejected += 1
                 continue
             v = verifier.verify(cx, cy, r_start)
-            if isinstance(v, str) or v.score < s.min_score:
+            if isinstance(v, str) or v.score < min_score:
                 rejected += 1
                 continue
             # the single saddle: no other X-corner of the same checker around it, about as strong
@@ -1106,8 +1200,14 @@ class ClassicalDetector:
                    for j in near[np.argsort(-cand_c[near])][:8]):
                 rejected += 1
                 continue
-            ref = refine_center(gray, v.x, v.y, v.radius, method=s.refine_method,
-                                max_shift_px=max(2.0 * scale, 0.3 * v.radius))
+            shift = max(2.0 * scale, 0.3 * v.radius)
+            ref = refine_center(gray, v.x, v.y, v.radius, method=s.refine_method, max_shift_px=shift)
+            if paint_search is not None:
+                # painted markers: the gray edges may be faint, the paint ones soft (JPEG stores colour
+                # at half resolution); the fit with the smaller sigma wins
+                alt = _refine_reduced(paint_search, k, v.x, v.y, v.radius, s.refine_method, shift)
+                if alt.ok and (not ref.ok or alt.sigma_px < ref.sigma_px):
+                    ref = alt
             if ref.ok:
                 if any(math.hypot(ref.x - a.x, ref.y - a.y) < 0.5 * a.radius for a, _ in accepted):
                     continue
@@ -1116,22 +1216,38 @@ class ClassicalDetector:
             else:
                 sigma = max(0.5 * scale, 0.5)
                 v.score *= 0.7
-            if v.score < s.min_score:
+            if v.score < min_score:
                 continue
             accepted.append((v, sigma))
-        accepted.sort(key=lambda t: -t[0].score)
-        dets = [MarkerDetection(float(np.clip(v.x, -0.5, w - 0.5)), float(np.clip(v.y, -0.5, h - 0.5)),
-                                float(v.score), v.type, float(v.radius), float(sigma)) for v, sigma in accepted]
-        prob = None
-        if s.probability_map:
-            sh, sw = search.shape
-            prob = np.zeros((sh, sw), np.float32)
-            for v, _ in accepted:
-                poly = ((v.outline + 0.5) / k - 0.5) * 16.0
-                cv2.fillPoly(prob, [np.round(poly).astype(np.int32)], 1.0, lineType=cv2.LINE_AA, shift=4)
-            np.clip(prob, 0.0, 1.0, out=prob)
-        extras = {"search_factor": k, "candidates": len(cands), "prefiltered": int(passed.sum()), "rejected": rejected}
-        return DetectionResult(dets, (w, h), prob, 0.0, extras)
+        return rejected
+
+
+def _refine_reduced(img: np.ndarray, k: int, x: float, y: float, radius: float, method: str, shift: float):
+    """:func:`refine_center` on an image reduced k times, position and sigma in full-resolution pixels."""
+    if k == 1:
+        return refine_center(img, x, y, radius, method=method, max_shift_px=shift)
+    r = refine_center(img, (x + 0.5) / k - 0.5, (y + 0.5) / k - 0.5, radius / k, method=method,
+                      max_shift_px=max(shift / k, 1.0))
+    return replace(r, x=(r.x + 0.5) * k - 0.5, y=(r.y + 0.5) * k - 0.5, sigma_px=r.sigma_px * k)
+
+
+def _reduced(img: np.ndarray, k: int) -> np.ndarray:
+    """``img`` area-reduced k times (the search image's size), itself for k = 1."""
+    import cv2
+
+    if k == 1:
+        return img
+    h, w = img.shape[:2]
+    return cv2.resize(img, ((w + k - 1) // k, (h + k - 1) // k), interpolation=cv2.INTER_AREA)
+
+
+def paint_image(bgr: np.ndarray) -> np.ndarray:
+    """The max of the three channels (HSV value, uint8 HxW) of a BGR image: coloured paint keeps its
+    full brightness there, where luminance weights red by 0.3."""
+    import cv2
+
+    b, g, r = cv2.split(bgr)
+    return cv2.max(cv2.max(b, g), r)
 
 
 __all__ = ["ClassicalDetector", "ClassicalSettings", "verify_marker_at"]

@@ -56,9 +56,10 @@ def xcorner_contrast(level: np.ndarray, sigma: float = 1.5) -> np.ndarray:
 
 
 def find_candidates(levels: list[np.ndarray], min_contrast: float, max_per_level: int = 300,
-                    sigma: float = 1.5, border: int = 3) -> list[Candidate]:
+                    sigma: float = 1.5, border: int = 3, maps: list | None = None) -> list[Candidate]:
     """Local maxima of c_hat above ``min_contrast`` on every level, strongest first per level,
-    at most ``max_per_level`` each; positions mapped to search-image pixels."""
+    at most ``max_per_level`` each; positions mapped to search-image pixels. ``maps``, when given
+    (a list), receives each level's c_hat map."""
     import cv2
 
     out: list[Candidate] = []
@@ -66,6 +67,8 @@ def find_candidates(levels: list[np.ndarray], min_contrast: float, max_per_level
     kernel = np.ones((nms, nms), np.uint8)
     for li, lev in enumerate(levels):
         c = xcorner_contrast(lev, sigma)
+        if maps is not None:
+            maps.append(c)
         peak = (c >= cv2.dilate(c, kernel)) & (c >= min_contrast)
         peak[:border] = peak[-border:] = False
         peak[:, :border] = peak[:, -border:] = False

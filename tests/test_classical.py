@@ -424,3 +424,47 @@ def test_candidate_score_spares_verification_of_weak_saddles_not_of_markers():
     assert ver.prefilter(xy, r0)[0]  # without the candidates' contrast: the fixed tests only
     with pytest.raises(ValueError, match="min_candidate_score"):
         ClassicalSettings(min_candidate_score=1.0)
+
+
+def painted_marker(center, radius, shape, marker_type="square", angle=0.4, seed=3):
+    """BGR image of a marker painted red on grey: luminance contrast 4 grey levels (below the
+    detector's minimum), colour contrast 130 in the red channel."""
+    from cpdetect.markers import frontal_homography
+
+    bg = textured_background(shape, seed)
+    img = np.repeat(bg[..., None], 3, axis=2).astype(np.float32)
+    spec = MarkerSpec(marker_type, size_m=1.0)
+    rm = render_marker(spec, frontal_homography(center, radius, angle, spec), shape)
+    dark, red = np.array([70.0, 70.0, 70.0]), np.array([20.0, 20.0, 200.0])
+    rm.composite(img, dark, red)
+    img += np.random.default_rng(seed).normal(0.0, 1.5, img.shape)
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("marker_type", MARKER_TYPES)
+def test_marker_painted_in_colour_is_found_by_the_colour_pass(marker_type):
+    img = painted_marker((150.3, 118.8), 28.0, (240, 320), marker_type)
+    gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    assert get_detector("classical").detect(gray).detections == []  # no luminance contrast to go on
+    assert get_detector("classical", colour_pass=False).detect(img).detections == []
+    res = get_detector("classical").detect(img)
+    assert len(res.detections) == 1
+    m = res.detections[0]
+    assert m.type == marker_type
+    assert 0.0 < np.hypot(m.x - 150.3, m.y - 118.8) < 0.1
+    assert res.extras["colour_found"] == 1
+
+
+def test_painted_marker_found_from_files_at_full_and_reduced_search(tmp_path):
+    img = painted_marker((250.4, 180.6), 40.0, (400, 560))
+    png, jpg = tmp_path / "m.png", tmp_path / "m.jpg"
+    cv2.imwrite(str(png), img)
+    cv2.imwrite(str(jpg), img, [cv2.IMWRITE_JPEG_QUALITY, 92])
+    full = get_detector("classical").detect(str(png))
+    # a JPEG searched at 1/4 size: the colour pass decodes it there directly
+    reduced = get_detector("classical", search_megapixels=0.02).detect(str(jpg))
+    assert reduced.extras["search_factor"] == 4
+    for res, tol in ((full, 0.05), (reduced, 0.2)):
+        assert len(res.detections) == 1
+        m = res.detections[0]
+        assert 0.0 < np.hypot(m.x - 250.4, m.y - 180.6) < tol
