@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 
 from .detector import as_gray_uint8, settings_from_dataclass
+from .imageio import paint_image
 from .refine import refine_center
 from .types import DetectionResult, MarkerDetection
 from .xcorner import build_pyramid, find_candidates
@@ -1239,15 +1240,6 @@ def _reduced(img: np.ndarray, k: int) -> np.ndarray:
         return img
     h, w = img.shape[:2]
     return cv2.resize(img, ((w + k - 1) // k, (h + k - 1) // k), interpolation=cv2.INTER_AREA)
-
-
-def paint_image(bgr: np.ndarray) -> np.ndarray:
-    """The max of the three channels (HSV value, uint8 HxW) of a BGR image: coloured paint keeps its
-    full brightness there, where luminance weights red by 0.3."""
-    import cv2
-
-    b, g, r = cv2.split(bgr)
-    return cv2.max(cv2.max(b, g), r)
 
 
 __all__ = ["ClassicalDetector", "ClassicalSettings", "verify_marker_at"]

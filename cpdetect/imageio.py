@@ -191,6 +191,15 @@ def read_image(path: str | os.PathLike, gray: bool = False, reduce: int = 1) -> 
     return np.ascontiguousarray(img)
 
 
+def paint_image(bgr: np.ndarray) -> np.ndarray:
+    """The max of the three channels (HSV value, uint8 HxW) of a BGR image: coloured paint keeps its
+    full brightness there, where luminance weights red by 0.3."""
+    import cv2
+
+    b, g, r = cv2.split(bgr)
+    return cv2.max(cv2.max(b, g), r)
+
+
 def list_images(path: str | os.PathLike) -> list[Path]:
     """A single image, or the images directly inside a folder (sorted by name)."""
     p = Path(path)

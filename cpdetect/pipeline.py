@@ -15,7 +15,9 @@ same key, so an interrupted run resumes and a changed setting recomputes only fr
                   inputs allow them, else triangulate.
 3. ``refine``     project every candidate into every image that sees it (depth test), drop views
                   where the marker is too small or too oblique, and refine the centre there
-                  (:func:`cpdetect.refine.refine_center`), seeded by a detection near the projection.
+                  (:func:`cpdetect.refine.refine_center_painted`: on the gray image, and where that
+                  fit is uncertain also on the max of the colour channels, for markers painted red
+                  on black), seeded by a detection near the projection.
 4. ``triangulate`` robust multi-view triangulation of each candidate (Huber/Cauchy), merge of
                   candidates on the same X-corner, a second refinement in every view from the
                   triangulated point and a final triangulation; markers the detector found in too few
@@ -36,6 +38,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import functools
 import logging
 import math
 import re
@@ -759,8 +762,8 @@ def refine_views(ctx: _ViewContext, points: np.ndarray, normals: list, radii: np
     """
     from geometry.visibility import visible_points
 
-    from .imageio import read_image
-    from .refine import refine_center
+    from .imageio import paint_image, read_image
+    from .refine import refine_center_painted
     from .rejects import is_rejected
 
     settings = ctx.settings
@@ -792,6 +795,8 @@ def refine_views(ctx: _ViewContext, points: np.ndarray, normals: list, radii: np
         if not todo:
             continue
         gray = read_image(ctx.paths[name], gray=True)
+        # decoded in colour only if a gray fit is uncertain (markers painted red on black)
+        paint = functools.cache(lambda path=ctx.paths[name]: paint_image(read_image(path)))
         for j, r_px, cos in todo:
             u, v = vis.uv[j]
             seed, seeded_by, det_radius = (float(u), float(v)), "projection", None
@@ -801,7 +806,7 @@ def refine_views(ctx: _ViewContext, points: np.ndarray, normals: list, radii: np
                 if dd[k] <= gate * r_px:
                     seed, seeded_by = (float(det_xy[k, 0]), float(det_xy[k, 1])), "detection"
                     det_radius = dets[k]["radius_px"] * vis.depth[j] / cam.fx / math.sqrt(max(cos, 1e-3))
-            res = refine_center(gray, seed[0], seed[1], float(r_px), method=settings.refine_method)
+            res = refine_center_painted(gray, paint, seed[0], seed[1], float(r_px), method=settings.refine_method)
             if res.ok and ctx.rejects and is_rejected(name, res.x, res.y, ctx.rejects):
                 # a reviewer rejected this measurement: the view is not used (nor counted usable, so
                 # the marker's detected fraction is taken over the views that remain)

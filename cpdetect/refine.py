@@ -50,6 +50,8 @@ METHODS = ("auto", "symmetry", "saddle", "hough")
 # already this certain (px), and keeps the fit with the smallest sigma
 SMALLER_WINDOWS = (0.7, 0.5, 0.35)
 CONFIDENT_SIGMA_PX = 0.05
+# refine_center_painted tries the paint image when the gray fit's sigma is over this (px)
+PAINT_RETRY_SIGMA_PX = 0.1
 
 
 @dataclass(frozen=True)
@@ -494,5 +496,20 @@ def refine_center(gray: np.ndarray, x0: float, y0: float, radius_px: float, meth
     return min(others, key=lambda r: r.sigma_px)
 
 
-__all__ = ["RefineResult", "refine_center", "refine_saddle", "refine_symmetry", "refine_hough",
+def refine_center_painted(gray: np.ndarray, paint, x0: float, y0: float, radius_px: float, method: str = "auto",
+                          retry_sigma_px: float = PAINT_RETRY_SIGMA_PX, **kw) -> RefineResult:
+    """:func:`refine_center` on ``gray`` and, where that fails or is uncertain (sigma over
+    ``retry_sigma_px``), also on the *paint* image of the same photo (the max of its channels, see
+    :func:`cpdetect.imageio.paint_image`); the fit with the smaller sigma wins. A marker painted red
+    on black can have almost no luminance contrast while its paint stands out. ``paint``: an array
+    of the gray image's size, or a callable returning one (called only when needed), or None."""
+    res = refine_center(gray, x0, y0, radius_px, method=method, **kw)
+    if paint is None or (res.ok and res.sigma_px <= retry_sigma_px):
+        return res
+    img = paint() if callable(paint) else paint
+    alt = refine_center(img, x0, y0, radius_px, method=method, **kw)
+    return alt if alt.ok and (not res.ok or alt.sigma_px < res.sigma_px) else res
+
+
+__all__ = ["RefineResult", "refine_center", "refine_center_painted", "refine_saddle", "refine_symmetry", "refine_hough",
            "default_window", "METHODS"]

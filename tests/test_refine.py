@@ -164,3 +164,28 @@ def test_bad_arguments_raise():
         refine_center(img, np.nan, 2, 5.0)
     with pytest.raises(ValueError):
         refine_center(img, 2, 2, 0.0)
+
+
+def test_painted_marker_refined_on_its_paint_when_gray_has_no_contrast():
+    from cpdetect.imageio import paint_image
+    from cpdetect.refine import refine_center_painted
+    from test_classical import painted_marker
+
+    img = painted_marker((150.3, 118.8), 28.0, (240, 320))
+    gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    calls = []
+
+    def paint():
+        calls.append(1)
+        return paint_image(img)
+
+    plain = refine_center(gray, 151.0, 118.0, 28.0)
+    assert not plain.ok or plain.sigma_px > 0.1  # 4 grey levels of luminance contrast
+    res = refine_center_painted(gray, paint, 151.0, 118.0, 28.0)
+    assert res.ok and len(calls) == 1
+    assert 0.0 < np.hypot(res.x - 150.3, res.y - 118.8) < 0.05 and res.sigma_px < 0.05
+    # a marker with luminance contrast never pays for the paint image
+    calls.clear()
+    g, c, r = render((80.4, 79.7), 30.0, angle=0.3)
+    res = refine_center_painted(g, paint, 81.0, 79.0, r)
+    assert res.ok and calls == [] and np.hypot(res.x - c[0], res.y - c[1]) < 0.01
