@@ -136,10 +136,7 @@ class ClassicalSettings:
 def _search_levels(gray: np.ndarray, k: int, min_side: int = 40) -> tuple[np.ndarray, list[np.ndarray], "_Levels"]:
     """The search image (gray area-reduced by k), its pyramid (levels fine enough for the smallest
     marker, coarse enough for the largest) and the sampling levels over both and the full image."""
-    import cv2
-
-    h, w = gray.shape[:2]
-    search = cv2.resize(gray, ((w + k - 1) // k, (h + k - 1) // k), interpolation=cv2.INTER_AREA) if k > 1 else gray
+    search = _reduced(gray, k)
     pyramid = build_pyramid(search, min_side=min_side)
     # the full image is sampled in place (uint8): no full-size float copy
     return search, pyramid, _Levels(gray if k > 1 else None, k, pyramid)
