@@ -1077,8 +1077,14 @@ class ClassicalDetector:
         info = probe_image(path)
         k = self._search_factor(info.width, info.height)
         if info.format == "jpeg" and k > 1:
-            # the colour pass searches at reduced size only, where a JPEG decodes directly
-            return read_image(path, gray=True), paint_image(read_image(path, reduce=k))
+            # the colour pass searches at reduced size only, where a JPEG decodes directly; both
+            # decodes run at once (OpenCV releases the GIL): the small one hides behind the full one
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(1) as pool:
+                small = pool.submit(read_image, path, reduce=k)
+                gray = read_image(path, gray=True)
+                return gray, paint_image(small.result())
         return self._from_array(read_image(path))
 
     def _from_array(self, image: Any) -> tuple[np.ndarray, np.ndarray | None]:
@@ -1133,18 +1139,24 @@ class ClassicalDetector:
         none). Only X-corners at least ``colour_gain`` times stronger in paint than in gray are
         verified (the others were seen by the gray pass), and only scores of ``colour_min_score``
         are kept (the paint image loses the luminance edge between coloured paint and a white margin)."""
+        import cv2
+
         s = self.settings
         ppyr = build_pyramid(paint)
         pc = find_candidates(ppyr, 0.6 * s.min_contrast, s.max_candidates_per_level)
+        # the gray contrast around each paint X-corner: the max over 3x3 at the same level
+        gray_near = [cv2.dilate(g, np.ones((3, 3), np.uint8)) for g in gray_c]
         keep = []
-        for c in pc:
-            if c.level >= len(gray_c):
+        for lev in range(min(len(ppyr), len(gray_c))):
+            at = [c for c in pc if c.level == lev]
+            if not at:
                 continue
-            g, sc = gray_c[c.level], 2.0 ** c.level
-            ix, iy = int(round((c.x + 0.5) / sc - 0.5)), int(round((c.y + 0.5) / sc - 0.5))
-            near = g[max(iy - 1, 0):iy + 2, max(ix - 1, 0):ix + 2]
-            if near.size == 0 or c.contrast >= s.colour_gain * float(near.max()):
-                keep.append(c)
+            g, sc = gray_near[lev], 2.0 ** lev
+            xy = np.array([[c.x, c.y] for c in at])
+            ix = np.clip(np.round((xy[:, 0] + 0.5) / sc - 0.5).astype(np.intp), 0, g.shape[1] - 1)
+            iy = np.clip(np.round((xy[:, 1] + 0.5) / sc - 0.5).astype(np.intp), 0, g.shape[0] - 1)
+            strong = np.array([c.contrast for c in at]) >= s.colour_gain * g[iy, ix]
+            keep.extend(c for c, ok in zip(at, strong) if ok)
         plevels = _Levels(None, scan.k, ppyr)
         n0 = len(scan.accepted)
         rejected = scan.run(plevels, keep, max(s.min_score, s.colour_min_score), paint_search=paint)

@@ -243,6 +243,7 @@ def refine_symmetry(gray: np.ndarray, x0: float, y0: float, radius_px: float, wi
     if len(d) < 8:
         return _fail(x0, y0, "symmetry", "window too small")
     di = d.astype(np.intp)
+    n_off = int(np.abs(di).max())
     rr = np.sqrt(np.einsum("ij,ij->i", d, d))
     rmax = rr.max()
     wt = np.where(rr < 0.7 * rmax, 1.0, 0.5 + 0.5 * np.cos(np.pi * (rr - 0.7 * rmax) / (0.3 * rmax + 1e-9)))
@@ -262,13 +263,19 @@ def refine_symmetry(gray: np.ndarray, x0: float, y0: float, radius_px: float, wi
             return _fail(x0, y0, "symmetry", "window leaves the image")
         # every sample p +- d shares the fractional part of p: shift the patch once by exact cubic
         # weights (cv2.remap quantises positions to 1/32 px, which would floor the accuracy)
-        sh = _subpixel_shift(img, lx - ix, ly - iy)
+        # only the window around the current point is filtered: the patch also holds the allowed
+        # shift, often far larger (a 450 px marker: 370 px patch, 80 px window). The 5 px margin
+        # covers the taps of the shift and the Sobel, so values are those of the whole patch.
+        cx0, cy0 = max(ix - n_off - 5, 0), max(iy - n_off - 5, 0)
+        sub = img[cy0:min(iy + n_off + 6, hh), cx0:min(ix + n_off + 6, ww)]
+        sh = _subpixel_shift(sub, lx - ix, ly - iy)
         gx = cv2.Sobel(sh, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
         gy = cv2.Sobel(sh, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
         stack = np.dstack([sh, gx, gy])
         dd, dv = d[inside], di[inside]
-        sp = stack[iy + dv[:, 1], ix + dv[:, 0]].astype(np.float64)
-        sm = stack[iy - dv[:, 1], ix - dv[:, 0]].astype(np.float64)
+        jx, jy = ix - cx0, iy - cy0
+        sp = stack[jy + dv[:, 1], jx + dv[:, 0]].astype(np.float64)
+        sm = stack[jy - dv[:, 1], jx - dv[:, 0]].astype(np.float64)
         r = sp[:, 0] - sm[:, 0]
         J = np.column_stack([sp[:, 1] - sm[:, 1], sp[:, 2] - sm[:, 2], -2 * dd[:, 0], -2 * dd[:, 1]])
         wi = wt[inside] * robust[inside]

@@ -55,6 +55,16 @@ def xcorner_contrast(level: np.ndarray, sigma: float = 1.5) -> np.ndarray:
     return negdet
 
 
+def _parabolic_offset(lo: np.ndarray, mid: np.ndarray, hi: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """Vertex offset in [-0.5, 0.5] of the parabola through (-1, lo), (0, mid), (1, hi); 0 where it is
+    not a maximum or ``use`` is False."""
+    den = lo - 2 * mid + hi
+    ok = use & (den < 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        off = np.clip(0.5 * (lo - hi) / np.where(ok, den, -1), -0.5, 0.5)
+    return np.where(ok, off, 0).astype(np.float64)
+
+
 def find_candidates(levels: list[np.ndarray], min_contrast: float, max_per_level: int = 300,
                     sigma: float = 1.5, border: int = 3, maps: list | None = None) -> list[Candidate]:
     """Local maxima of c_hat above ``min_contrast`` on every level, strongest first per level,
@@ -77,19 +87,17 @@ def find_candidates(levels: list[np.ndarray], min_contrast: float, max_per_level
             continue
         vals = c[ys, xs]
         order = np.argsort(-vals)[:max_per_level]
+        xs, ys, vals = xs[order], ys[order], vals[order]
+        # parabolic sub-pixel peak (enough to seed the verifier), all peaks at once in float32
+        inner = (xs > 0) & (xs < c.shape[1] - 1) & (ys > 0) & (ys < c.shape[0] - 1)
+        xi, yi = np.clip(xs, 1, c.shape[1] - 2), np.clip(ys, 1, c.shape[0] - 2)
+        m = c[yi, xi]
+        dx = _parabolic_offset(c[yi, xi - 1], m, c[yi, xi + 1], inner)
+        dy = _parabolic_offset(c[yi - 1, xi], m, c[yi + 1, xi], inner)
         s = float(2 ** li)
-        for i in order:
-            x, y = int(xs[i]), int(ys[i])
-            # parabolic sub-pixel peak (enough to seed the verifier)
-            dx = dy = 0.0
-            if 0 < x < c.shape[1] - 1 and 0 < y < c.shape[0] - 1:
-                l, r, m = c[y, x - 1], c[y, x + 1], c[y, x]
-                den = l - 2 * m + r
-                dx = float(np.clip(0.5 * (l - r) / den, -0.5, 0.5)) if den < 0 else 0.0
-                u, d = c[y - 1, x], c[y + 1, x]
-                den = u - 2 * m + d
-                dy = float(np.clip(0.5 * (u - d) / den, -0.5, 0.5)) if den < 0 else 0.0
-            out.append(Candidate((x + dx + 0.5) * s - 0.5, (y + dy + 0.5) * s - 0.5, li, float(vals[i])))
+        px = (xs + dx + 0.5) * s - 0.5
+        py = (ys + dy + 0.5) * s - 0.5
+        out.extend(Candidate(float(a), float(b), li, float(v)) for a, b, v in zip(px, py, vals))
     return out
 
 
