@@ -42,6 +42,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from typing import Any
 
@@ -155,32 +156,50 @@ class _Levels:
     def sample(self, xs: np.ndarray, ys: np.ndarray, spacing: np.ndarray) -> np.ndarray:
         """Bilinear samples at full-res points (xs, ys) (same shape), each from the level matched to
         its ``spacing`` (broadcast to the shape); outside the image -> NaN."""
+        scales = np.array([s for s, _ in self.items])  # ascending
+        # the coarsest level whose scale is at most the spacing (the finest one below all of them);
+        # chosen on the spacing as given (often one value per ring), then broadcast
+        sp = np.asarray(spacing)
+        idx = np.maximum(np.searchsorted(scales, sp, side="right") - 1, 0)
+        lo, hi = int(idx.min()), int(idx.max())
+        if lo == hi:
+            return self._sample_level(lo, xs, ys)
+        if sp.ndim == xs.ndim and sp.shape[-1] == 1:
+            # rings: one spacing per row of samples, so whole rows go to one level
+            ncol = xs.shape[-1]
+            rx, ry = xs.reshape(-1, ncol), ys.reshape(-1, ncol)
+            ridx = np.broadcast_to(idx, xs.shape[:-1] + (1,)).reshape(-1)
+            out = np.empty(rx.shape, np.float32)
+            for i in range(lo, hi + 1):
+                sel = np.nonzero(ridx == i)[0]
+                if sel.size:
+                    out[sel] = self._sample_level(i, rx[sel], ry[sel])
+            return out.reshape(xs.shape)
+        idx = np.broadcast_to(idx, xs.shape)
+        out = np.empty(xs.shape, np.float32)
+        for i in range(lo, hi + 1):
+            m = idx == i
+            if m.any():
+                out[m] = self._sample_level(i, xs[m], ys[m])
+        return out
+
+    def _sample_level(self, i: int, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+        """Bilinear samples of level i at full-res points (any shape), float32, NaN outside."""
         import cv2
 
-        spacing = np.broadcast_to(spacing, xs.shape)
-        out = np.full(xs.shape, np.nan, np.float32)
-        scales = np.array([s for s, _ in self.items])  # ascending
-        # the coarsest level whose scale is at most the spacing (the finest one below all of them)
-        idx = np.maximum(np.searchsorted(scales, spacing, side="right") - 1, 0)
-        lo, hi = int(idx.min()), int(idx.max())
-        for i in range(lo, hi + 1):
-            s, img = self.items[i]
-            m = np.ones(xs.shape, bool) if lo == hi else idx == i
-            if lo != hi and not m.any():
-                continue
-            lx = ((xs[m] + 0.5) / s - 0.5).astype(np.float32)
-            ly = ((ys[m] + 0.5) / s - 0.5).astype(np.float32)
-            n = lx.size
-            cols = 1024  # remap wants maps under 32767 rows and columns
-            pad = (-n) % cols
-            mx = np.concatenate([lx, np.zeros(pad, np.float32)]).reshape(-1, cols)
-            my = np.concatenate([ly, np.zeros(pad, np.float32)]).reshape(-1, cols)
-            v = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()[:n].astype(np.float32)
-            h, w = img.shape[:2]
-            outside = ((lx < -0.5) | (ly < -0.5) | (lx > w - 0.5) | (ly > h - 0.5)).ravel()
-            v[outside] = np.nan
-            out[m] = v
-        return out
+        s, img = self.items[i]
+        lx = ((xs + 0.5) / s - 0.5).astype(np.float32).ravel()
+        ly = ((ys + 0.5) / s - 0.5).astype(np.float32).ravel()
+        n = lx.size
+        cols = 1024  # remap wants maps under 32767 rows and columns
+        pad = (-n) % cols
+        mx = np.concatenate([lx, np.zeros(pad, np.float32)]).reshape(-1, cols)
+        my = np.concatenate([ly, np.zeros(pad, np.float32)]).reshape(-1, cols)
+        v = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()[:n]
+        v = v.astype(np.float32)  # a copy also when already float32: the map's padding is dropped
+        h, w = img.shape[:2]
+        v[(lx < -0.5) | (ly < -0.5) | (lx > w - 0.5) | (ly > h - 0.5)] = np.nan
+        return v.reshape(np.shape(xs))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -367,7 +386,7 @@ class _Verifier:
         """(n_radii, N_THETA) samples on rings around (x, y) (full-res pixels)."""
         xs = x + radii[:, None] * self.cos[None, :]
         ys = y + radii[:, None] * self.sin[None, :]
-        return self.levels.sample(xs, ys, np.broadcast_to(spacing[:, None], xs.shape))
+        return self.levels.sample(xs, ys, np.asarray(spacing, float)[:, None])
 
     def prefilter(self, xy: np.ndarray, r_start: np.ndarray, q_min: float = 0.75, chat: np.ndarray | None = None,
                   level: np.ndarray | None = None) -> np.ndarray:
@@ -395,13 +414,13 @@ class _Verifier:
         radii = r_start[:, None] * f[None, :]  # (n, 8)
         xs = xy[:, 0, None, None] + radii[:, :, None] * self.cos[None, None, :]
         ys = xy[:, 1, None, None] + radii[:, :, None] * self.sin[None, None, :]
-        spacing = np.broadcast_to((radii * (TWO_PI / self.N_THETA))[:, :, None], xs.shape)
-        P = self.levels.sample(xs, ys, spacing).astype(np.float64)
+        P = self.levels.sample(xs, ys, (radii * (TWO_PI / self.N_THETA))[:, :, None]).astype(np.float64)
         ok = ~np.isnan(P).any(axis=(1, 2))
         P = np.nan_to_num(P)
         mean = P.mean(2, keepdims=True)
         std = P.std(2) + 1e-6
-        h2 = ((P - mean) * np.exp(-2j * self.theta)[None, None, :]).mean(2)
+        # the second harmonic; the mean drops out (cos 2t and sin 2t sum to zero over the ring)
+        h2 = (P @ np.cos(2 * self.theta) - 1j * (P @ np.sin(2 * self.theta))) / self.N_THETA
         q = math.sqrt(2) * np.abs(h2) / std
         dphi = np.abs(_wrap(np.angle(h2) - np.angle(h2[:, :1])))
         # exactly four sectors in the mean normalised profile (as :meth:`core` will require)
@@ -1079,8 +1098,6 @@ class ClassicalDetector:
         if info.format == "jpeg" and k > 1:
             # the colour pass searches at reduced size only, where a JPEG decodes directly; both
             # decodes run at once (OpenCV releases the GIL): the small one hides behind the full one
-            from concurrent.futures import ThreadPoolExecutor
-
             with ThreadPoolExecutor(1) as pool:
                 small = pool.submit(read_image, path, reduce=k)
                 gray = read_image(path, gray=True)
@@ -1116,10 +1133,15 @@ class ClassicalDetector:
         cands = find_candidates(pyramid, 0.6 * s.min_contrast, s.max_candidates_per_level, maps=gray_c)
         accepted: list[tuple[_Verified, Any]] = []
         scan = _Scan(gray, k, s, accepted)
-        rejected = scan.run(levels, cands, s.min_score)
-        extras = {"search_factor": k, "candidates": len(cands), "prefiltered": scan.prefiltered, "rejected": rejected}
-        if paint is not None and s.colour_pass:
-            extras.update(self._colour_pass(scan, gray_c, paint))
+        with ThreadPoolExecutor(1) as pool:
+            # the paint image's X-corners are found beside the gray verification (mostly OpenCV
+            # and NumPy work, which runs outside the GIL, against mostly Python work)
+            paint_cands = pool.submit(self._paint_candidates, paint) if paint is not None and s.colour_pass else None
+            rejected = scan.run(levels, cands, s.min_score)
+            extras = {"search_factor": k, "candidates": len(cands), "prefiltered": scan.prefiltered,
+                      "rejected": rejected}
+            if paint_cands is not None:
+                extras.update(self._colour_pass(scan, gray_c, paint, *paint_cands.result()))
         accepted.sort(key=lambda t: -t[0].score)
         dets = [MarkerDetection(float(np.clip(v.x, -0.5, w - 0.5)), float(np.clip(v.y, -0.5, h - 0.5)),
                                 float(v.score), v.type, float(v.radius), float(sigma)) for v, sigma in accepted]
@@ -1133,7 +1155,14 @@ class ClassicalDetector:
             np.clip(prob, 0.0, 1.0, out=prob)
         return DetectionResult(dets, (w, h), prob, 0.0, extras)
 
-    def _colour_pass(self, scan: "_Scan", gray_c: list[np.ndarray], paint: np.ndarray) -> dict:
+    def _paint_candidates(self, paint: np.ndarray) -> tuple[list[np.ndarray], list]:
+        """The paint image's pyramid and X-corner candidates (see :meth:`_colour_pass`)."""
+        s = self.settings
+        ppyr = build_pyramid(paint)
+        return ppyr, find_candidates(ppyr, 0.6 * s.min_contrast, s.max_candidates_per_level)
+
+    def _colour_pass(self, scan: "_Scan", gray_c: list[np.ndarray], paint: np.ndarray, ppyr: list[np.ndarray],
+                     pc: list) -> dict:
         """Second search on the paint image, for markers whose paint differs from the dark quadrants
         in colour more than in luminance (red on black: a third of the contrast in gray, sometimes
         none). Only X-corners at least ``colour_gain`` times stronger in paint than in gray are
@@ -1142,8 +1171,6 @@ class ClassicalDetector:
         import cv2
 
         s = self.settings
-        ppyr = build_pyramid(paint)
-        pc = find_candidates(ppyr, 0.6 * s.min_contrast, s.max_candidates_per_level)
         # the gray contrast around each paint X-corner: the max over 3x3 at the same level
         gray_near = [cv2.dilate(g, np.ones((3, 3), np.uint8)) for g in gray_c]
         keep = []
