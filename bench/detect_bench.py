@@ -1,8 +1,8 @@
 """Benchmark of the classical detector against its peers, in one run, on the same data.
 
 1. A generated set with *test*-split backgrounds (never used for tuning): ``--n`` images of 640x480
-   plus ``--n-large`` of 1600x1200. For each detector: marker recall, precision, false markers per
-   image, type accuracy, centre error (mean, median, p95, per radius bin, mean dx/dy for bias) and
+   plus ``--n-large`` of 1600x1200. For each detector: marker recall (also apart for the uncovered
+   markers and those over 2 % covered), precision, false markers per image, type accuracy, centre error (mean, median, p95, per radius bin, mean dx/dy for bias) and
    throughput. Peers on the same images:
    - chess-corners (``chess_corners``, Rust ChESS and Radon X-corner detectors, default multiscale
      presets): its X-corners matched to the true markers with the same tolerance
@@ -57,6 +57,20 @@ def make_sets(root: Path, n: int, n_large: int, seed: int) -> list[Path]:
     return sets
 
 
+COVERED_FRAC = 0.02  # a marker counts as partly covered above this share of its area hidden
+
+
+def _covered(marker) -> bool:
+    return float(marker.extra.get("occluded_frac", 0.0)) > COVERED_FRAC
+
+
+def _recall_split(found: list[bool], covered: list[bool]) -> dict:
+    """Recall of the uncovered and of the partly covered markers, with their counts."""
+    f, c = np.asarray(found, bool), np.asarray(covered, bool)
+    return {"uncovered": {"markers": int((~c).sum()), "recall": float(f[~c].mean()) if (~c).any() else None},
+            "covered": {"markers": int(c.sum()), "recall": float(f[c].mean()) if c.any() else None}}
+
+
 def bench_classical(datasets, det) -> dict:
     import cv2
 
@@ -64,6 +78,7 @@ def bench_classical(datasets, det) -> dict:
 
     n_img = n_truth = n_det = tp = type_ok = 0
     errs, dxs, dys, by_bin, mp, secs = [], [], [], {}, 0.0, 0.0
+    found, covered = [], []
     for ds in datasets:
         for item in ds.images:
             img = cv2.imread(str(ds.image_path(item)), cv2.IMREAD_COLOR)
@@ -76,6 +91,9 @@ def bench_classical(datasets, det) -> dict:
             n_truth += len(item.markers)
             n_det += len(res.detections)
             tp += len(pairs)
+            hit = {m.truth for m in pairs}
+            found += [i in hit for i in range(len(item.markers))]
+            covered += [_covered(t) for t in item.markers]
             for m in pairs:
                 d, t = res.detections[m.det], item.markers[m.truth]
                 errs.append(m.distance)
@@ -85,6 +103,7 @@ def bench_classical(datasets, det) -> dict:
                 b = "8-16" if t.radius_px < 16 else "16-32" if t.radius_px < 32 else "32-64" if t.radius_px < 64 else "64+"
                 by_bin.setdefault(b, []).append(m.distance)
     return {"images": n_img, "markers": n_truth, "detections": n_det, "recall": tp / max(n_truth, 1),
+            "recall_by_cover": _recall_split(found, covered),
             "precision": tp / max(n_det, 1), "false_markers_per_image": (n_det - tp) / max(n_img, 1),
             "type_accuracy": type_ok / max(tp, 1), "centre_error_px": _stats(errs),
             "centre_error_by_radius_px": {k: _stats(v) for k, v in sorted(by_bin.items())},
@@ -101,6 +120,7 @@ def bench_chess(datasets, preset: str) -> dict:
     det = chess_corners.Detector(getattr(chess_corners.DetectorConfig, preset)())
     n_img = n_truth = n_corners = tp = 0
     errs, secs, mp = [], 0.0, 0.0
+    found, covered = [], []
     for ds in datasets:
         for item in ds.images:
             g = np.ascontiguousarray(cv2.imread(str(ds.image_path(item)), cv2.IMREAD_GRAYSCALE))
@@ -114,16 +134,20 @@ def bench_chess(datasets, preset: str) -> dict:
             n_corners += len(xy)
             used = np.zeros(len(xy), bool)
             for t in item.markers:  # nearest unused corner within the tolerance
+                covered.append(_covered(t))
+                found.append(False)
                 if not len(xy):
-                    break
+                    continue
                 d = np.hypot(xy[:, 0] - t.x, xy[:, 1] - t.y)
                 d[used] = np.inf
                 j = int(np.argmin(d))
                 if d[j] <= tolerance_px(t.radius_px):
                     used[j] = True
                     tp += 1
+                    found[-1] = True
                     errs.append(float(d[j]))
     return {"preset": preset, "images": n_img, "markers": n_truth, "corners": n_corners, "recall": tp / max(n_truth, 1),
+            "recall_by_cover": _recall_split(found, covered),
             "false_corners_per_image": (n_corners - tp) / max(n_img, 1), "centre_error_px": _stats(errs),
             "seconds_per_image": secs / max(n_img, 1), "megapixels_per_second": mp / max(secs, 1e-9)}
 
@@ -327,12 +351,19 @@ def main(argv=None) -> int:
           f"{c['false_markers_per_image']:.3f}  type acc {c['type_accuracy']:.3f}  centre mean {ce.get('mean', float('nan')):.3f} "
           f"p95 {ce.get('p95', float('nan')):.3f} px  bias ({c['bias_px']['dx_mean']:+.4f}, {c['bias_px']['dy_mean']:+.4f})  "
           f"{c['seconds_per_image']:.2f} s/img")
+    def by_cover(v: dict) -> str:
+        rc = v["recall_by_cover"]
+        return "  ".join(f"{k} {rc[k]['recall']:.3f} of {rc[k]['markers']}" for k in ("uncovered", "covered")
+                         if rc[k]["recall"] is not None)
+
+    print(f"   recall: {by_cover(c)}")
     for k, v in c["centre_error_by_radius_px"].items():
         print(f"   radius {k:>6} px: n {v['n']:4d}  mean {v['mean']:.3f}  p95 {v['p95']:.3f}")
     for p, v in report["chess_corners"].items():
         e = v["centre_error_px"]
         print(f"chess-corners {p:17s} recall {v['recall']:.3f}  false corners/img {v['false_corners_per_image']:.1f}  "
-              f"centre mean {e.get('mean', float('nan')):.3f} p95 {e.get('p95', float('nan')):.3f} px  {v['seconds_per_image']*1000:.1f} ms/img")
+              f"centre mean {e.get('mean', float('nan')):.3f} p95 {e.get('p95', float('nan')):.3f} px  {v['seconds_per_image']*1000:.1f} ms/img"
+              f"\n   recall: {by_cover(v)}")
     for k, v in report["seeded_refiners"].items():
         print(f"seeded {k:24s} mean {v['mean']:.3f}  median {v['median']:.3f}  p95 {v['p95']:.3f} px (n {v['n']})")
     for j in (report[k] for k in ("jpeg_45mp", "jpeg_45mp_texture") if k in report):
