@@ -202,7 +202,7 @@ class _Levels:
         mx = np.concatenate([lx, np.zeros(pad, np.float32)]).reshape(-1, cols)
         my = np.concatenate([ly, np.zeros(pad, np.float32)]).reshape(-1, cols)
         v = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()[:n]
-        v = v.astype(np.float32)  # a copy also when already float32: the map's padding is dropped
+        v = v.astype(np.float32, copy=False)  # the full-resolution level is uint8
         h, w = img.shape[:2]
         v[(lx < -0.5) | (ly < -0.5) | (lx > w - 0.5) | (ly > h - 0.5)] = np.nan
         return v.reshape(np.shape(xs))
