@@ -438,15 +438,12 @@ def _unless_lines_do_better(gray: np.ndarray, sym: RefineResult, x0: float, y0: 
                             kw: dict) -> RefineResult:
     """The symmetry fit, or the Hough-line fit where the window is clearly not point symmetric (sigma
     over 0.15 px: a shadow edge or an occluder across the centre breaks the symmetry everywhere,
-    while the boundary lines stay straight) and the lines agree with it within 1 px, or within three
-    of its sigmas, at a sigma under half of its. A symmetry fit uncertain by more than a pixel has
-    slid along one straight edge (point symmetric about any of its points; a seed far off a large
-    marker's centre): the lines win wherever they fit."""
+    while the boundary lines stay straight) and the lines agree with it within 1 px at a sigma under
+    half of its."""
     if sym.sigma_px <= 0.15:
         return sym
     hough = refine_hough(gray, x0, y0, radius_px, **kw)
-    agree = np.hypot(hough.x - sym.x, hough.y - sym.y) <= max(1.0, 3.0 * sym.sigma_px) or sym.sigma_px > 1.0
-    if hough.ok and hough.sigma_px < 0.5 * sym.sigma_px and agree:
+    if hough.ok and hough.sigma_px < 0.5 * sym.sigma_px and np.hypot(hough.x - sym.x, hough.y - sym.y) <= 1.0:
         return hough
     return sym
 
