@@ -1095,19 +1095,16 @@ class ClassicalDetector:
 
     def _read(self, path) -> tuple[np.ndarray, np.ndarray | None]:
         """Gray image (full resolution) and paint image (search resolution, or None) of a file."""
-        from .imageio import probe_image, read_image
+        from .imageio import probe_image, read_gray_and_reduced_colour, read_image
 
         if not self.settings.colour_pass:
             return read_image(path, gray=True), None
         info = probe_image(path)
         k = self._search_factor(info.width, info.height)
         if info.format == "jpeg" and k > 1:
-            # the colour pass searches at reduced size only, where a JPEG decodes directly; both
-            # decodes run at once (OpenCV releases the GIL): the small one hides behind the full one
-            with ThreadPoolExecutor(1) as pool:
-                small = pool.submit(read_image, path, reduce=k)
-                gray = read_image(path, gray=True)
-                return gray, paint_image(small.result())
+            # the colour pass searches at reduced size only, where a JPEG decodes directly
+            gray, small = read_gray_and_reduced_colour(path, k)
+            return gray, paint_image(small)
         return self._from_array(read_image(path))
 
     def _from_array(self, image: Any) -> tuple[np.ndarray, np.ndarray | None]:

@@ -7,6 +7,10 @@ Images come back as uint8 (8-bit gray or BGR). 16-bit images are scaled to 8 bit
 from __future__ import annotations
 
 import os
+import sys
+import tempfile
+import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -133,13 +137,42 @@ def read_image(path: str | os.PathLike, gray: bool = False, reduce: int = 1) -> 
     """Decode an image as uint8 gray (HxW) or BGR (HxWx3).
 
     ``reduce`` in {1, 2, 4, 8} decodes at 1/reduce size (rounded up, as libjpeg does); for non-JPEG
-    files the full image is decoded and resized with area averaging.
+    files the full image is decoded and resized with area averaging. A JPEG whose data libjpeg finds
+    damaged (it would fill the rest with grey) is an :class:`InputError`, like an unreadable one.
     """
-    import cv2
-
-    p = Path(path)
     if reduce not in (1, 2, 4, 8):
         raise ValueError(f"reduce must be 1, 2, 4 or 8, got {reduce}")
+    p = Path(path)
+    data, fmt = _checked_bytes(p)
+    if fmt != "jpeg":
+        return _decode_other(data, fmt, p, gray, reduce)
+    with _captured_stderr() as printed:
+        img = _decode_jpeg(data, p, gray, reduce)
+    _raise_if_damaged(printed, p)
+    return img
+
+
+def read_gray_and_reduced_colour(path: str | os.PathLike, reduce: int) -> tuple[np.ndarray, np.ndarray]:
+    """The full-size gray image and the BGR image at 1/``reduce`` size of one JPEG, from one read of
+    the file; the two decodes run at once (OpenCV releases the GIL), so the small one costs little
+    time. Other formats: as :func:`read_image` gives them."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    p = Path(path)
+    data, fmt = _checked_bytes(p)
+    if fmt != "jpeg":
+        return _decode_other(data, fmt, p, True, 1), _decode_other(data, fmt, p, False, reduce)
+    with _captured_stderr() as printed:
+        with ThreadPoolExecutor(1) as pool:
+            small = pool.submit(_decode_jpeg, data, p, False, reduce)
+            gray = _decode_jpeg(data, p, True, 1)
+            colour = small.result()
+    _raise_if_damaged(printed, p)
+    return gray, colour
+
+
+def _checked_bytes(p: Path) -> tuple[np.ndarray, str]:
+    """The file's bytes and format, after the checks that need no decoding."""
     try:
         data = np.fromfile(str(p), dtype=np.uint8)
     except FileNotFoundError:
@@ -164,12 +197,70 @@ def read_image(path: str | os.PathLike, gray: bool = False, reduce: int = 1) -> 
         raise InputError(f"image too large ({wh[0]}x{wh[1]} > {MAX_PIXELS // 1_000_000} MP)", p)
     if info_fmt == "png" and b"IEND" not in data[-_TAIL:].tobytes():
         raise InputError("truncated PNG (no IEND chunk at the end)", p)
-    if info_fmt == "jpeg":
-        flag_name = (_REDUCED_GRAY if gray else _REDUCED_COLOR)[reduce]
-        img = cv2.imdecode(data, getattr(cv2, flag_name))
-        if img is None:
-            raise InputError("corrupt JPEG (cannot decode)", p)
-        return img
+    return data, info_fmt
+
+
+def _decode_jpeg(data: np.ndarray, p: Path, gray: bool, reduce: int) -> np.ndarray:
+    import cv2
+
+    img = cv2.imdecode(data, getattr(cv2, (_REDUCED_GRAY if gray else _REDUCED_COLOR)[reduce]))
+    if img is None:
+        raise InputError("corrupt JPEG (cannot decode)", p)
+    return img
+
+
+# libjpeg reports damaged data only as a printed warning, and OpenCV returns the image with the rest
+# filled in grey: these lines mean pixels did not come from the file ("N extraneous bytes before
+# marker" is junk between segments, common in camera files, with every pixel intact)
+_JPEG_DAMAGE = ("corrupt jpeg data", "premature end of jpeg file")
+_BENIGN = ("extraneous bytes",)
+_STDERR_LOCK = threading.Lock()
+
+
+@contextmanager
+def _captured_stderr():
+    """Collects the lines written to the process's standard error (file descriptor 2, where libjpeg
+    prints) meanwhile into the yielded list, filled at exit; one capture at a time. Where fd 2
+    cannot be redirected, nothing is captured."""
+    lines: list[str] = []
+    with _STDERR_LOCK:
+        saved = None
+        try:
+            if sys.stderr is not None:
+                sys.stderr.flush()
+            saved = os.dup(2)
+            tmp = tempfile.TemporaryFile()
+        except (OSError, ValueError):
+            if saved is not None:
+                os.close(saved)
+            yield lines
+            return
+        with tmp:
+            os.dup2(tmp.fileno(), 2)
+            try:
+                yield lines
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+                tmp.seek(0)
+                lines.extend(tmp.read().decode("utf-8", "replace").splitlines())
+
+
+def _raise_if_damaged(printed: list[str], p: Path) -> None:
+    """InputError for the first damage warning among ``printed``; the other lines are passed on."""
+    damage = [ln for ln in printed
+              if ln.lower().startswith(_JPEG_DAMAGE) and not any(b in ln.lower() for b in _BENIGN)]
+    rest = [ln for ln in printed if ln not in damage]
+    if rest:
+        os.write(2, ("\n".join(rest) + "\n").encode())
+    if damage:
+        what = damage[0].split(":", 1)[-1].strip() if damage[0].lower().startswith("corrupt") else damage[0]
+        raise InputError(f"damaged JPEG data ({what}; the decoder would fill the rest in grey)", p)
+
+
+def _decode_other(data: np.ndarray, info_fmt: str, p: Path, gray: bool, reduce: int) -> np.ndarray:
+    import cv2
+
     # UNCHANGED keeps 16-bit depth and alpha so they can be converted deliberately below.
     img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     if img is None:

@@ -93,6 +93,8 @@ BAD_IMAGES = {
     # name: (file name, bytes from the good JPEG's bytes, expected words)
     "zero-byte JPEG": ("empty.jpg", lambda jpg, png: b"", "empty (0 bytes)"),
     "truncated JPEG": ("cut.jpg", lambda jpg, png: jpg[: len(jpg) // 2], "truncated JPEG"),
+    "JPEG cut short, end marker added": ("cut_end.jpg", lambda jpg, png: jpg[: len(jpg) // 2] + b"\xff\xd9",
+                                         "damaged JPEG data"),
     "truncated PNG": ("cut.png", lambda jpg, png: png[: len(png) // 2], "truncated PNG"),
     "text named .jpg": ("notes.jpg", lambda jpg, png: b"just some text\n", "not an image"),
     "huge 20001x20000 PNG": ("huge.png", lambda jpg, png: _png_header(20001, 20000), "too large (20001x20000"),

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from cpdetect.errors import InputError
-from cpdetect.imageio import list_images, probe_image, read_image
+from cpdetect.imageio import list_images, probe_image, read_gray_and_reduced_colour, read_image
 
 
 @pytest.fixture()
@@ -46,6 +46,37 @@ def test_bad_files_name_the_file(tmp_path, jpeg, case, message):
             fn(p)
         assert message in str(e.value) and str(p) in str(e.value)
         assert "\n" not in str(e.value)
+
+
+def _noisy_jpeg_bytes() -> bytes:
+    img = (np.random.default_rng(0).random((240, 320, 3)) * 255).astype(np.uint8)
+    return cv2.imencode(".jpg", img)[1].tobytes()
+
+
+def test_jpeg_cut_short_with_an_end_marker_is_refused(tmp_path, capfd):
+    # a copy that stopped half-way and an end-of-image marker added after it: libjpeg only prints a
+    # warning and OpenCV returns the image with its lower half grey
+    data = _noisy_jpeg_bytes()
+    p = tmp_path / "cut.jpg"
+    p.write_bytes(data[: len(data) // 2] + b"\xff\xd9")
+    for call in (lambda: read_image(p), lambda: read_image(p, gray=True, reduce=4),
+                 lambda: read_gray_and_reduced_colour(p, 2)):
+        with pytest.raises(InputError) as e:
+            call()
+        assert "damaged JPEG data" in str(e.value) and str(p) in str(e.value) and "\n" not in str(e.value)
+    assert "Corrupt JPEG" not in capfd.readouterr().err  # said once, in the error, not printed as well
+
+
+def test_jpeg_with_junk_before_its_end_marker_still_reads(tmp_path, capfd):
+    # bytes between segments (some cameras write them): every pixel is intact, libjpeg's warning is
+    # passed on and the image is returned
+    data = _noisy_jpeg_bytes()
+    p = tmp_path / "junk.jpg"
+    p.write_bytes(data[:-2] + bytes(range(1, 41)) + data[-2:])
+    assert np.array_equal(read_image(p), cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR))
+    gray, small = read_gray_and_reduced_colour(p, 2)
+    assert gray.shape == (240, 320) and small.shape == (120, 160, 3)
+    assert "extraneous bytes" in capfd.readouterr().err
 
 
 def test_png_with_jpg_name_is_read_by_content(tmp_path):
