@@ -140,8 +140,7 @@ def read_image(path: str | os.PathLike, gray: bool = False, reduce: int = 1) -> 
     files the full image is decoded and resized with area averaging. A JPEG whose data libjpeg finds
     damaged (it would fill the rest with grey) is an :class:`InputError`, like an unreadable one.
     """
-    if reduce not in (1, 2, 4, 8):
-        raise ValueError(f"reduce must be 1, 2, 4 or 8, got {reduce}")
+    _check_reduce(reduce)
     p = Path(path)
     data, fmt = _checked_bytes(p)
     if fmt != "jpeg":
@@ -158,6 +157,7 @@ def read_gray_and_reduced_colour(path: str | os.PathLike, reduce: int) -> tuple[
     time. Other formats: as :func:`read_image` gives them."""
     from concurrent.futures import ThreadPoolExecutor
 
+    _check_reduce(reduce)
     p = Path(path)
     data, fmt = _checked_bytes(p)
     if fmt != "jpeg":
@@ -169,6 +169,11 @@ def read_gray_and_reduced_colour(path: str | os.PathLike, reduce: int) -> tuple[
             colour = small.result()
     _raise_if_damaged(printed, p)
     return gray, colour
+
+
+def _check_reduce(reduce: int) -> None:
+    if reduce not in (1, 2, 4, 8):
+        raise ValueError(f"reduce must be 1, 2, 4 or 8, got {reduce}")
 
 
 def _checked_bytes(p: Path) -> tuple[np.ndarray, str]:
