@@ -22,9 +22,13 @@ Pipeline for one image:
    outer ring beyond the outline that must not continue the checker (rejects X-corners inside larger
    checkerboards and tag bit patterns). Grout and mullion crosses fail the sector test (thin lines,
    not solid wedges); edges, text and texture fail the core or the outline.
-4. **Type** from the turn between the two straight parts of each sector's boundary (a square's corner
-   ~90 degrees, a circle's arc ~35, a diagonal's single side ~0), the outline models' residuals deciding
-   in between; **radius_px** from the outline area.
+4. **Type** in the frame of the checker lines (:func:`type_residuals`): a sector's boundary points,
+   divided by the outline's extents along its two bounding lines, lie on the unit L1 ball for a
+   diagonal, L2 for a circle, L-infinity for a square, in any affine view (train-split sets: type
+   accuracy 0.953 / 0.945 / 0.943 -> 0.979 / 0.979 / 0.984 against the earlier rule). The outline
+   model, from which the score and **radius_px** (outline area) come, keeps the earlier rule: the
+   turn between the two straight parts of each sector's boundary (a square's corner ~90 degrees, a
+   circle's arc ~35, a diagonal's single side ~0), the models' residuals deciding in between.
 5. **Centre** by :func:`cpdetect.refine.refine_center` on the full-resolution image, window adapted to
    the radius; **sigma_px** from the fit.
 6. **Colour pass** (colour images, ``colour_pass``): steps 2-5 again on the *paint* image, the max of
@@ -286,6 +290,63 @@ def _mean_turn_deg(two_line_fits: list) -> float:
     turns = [math.degrees(math.acos(min(1.0, abs(float(l1[:2] @ l2[:2]))))) for _, l1, l2 in two_line_fits
              if l1 is not None and l2 is not None]
     return float(np.mean(turns)) if turns else 0.0
+
+
+def _unit_lstsq(A: np.ndarray) -> np.ndarray:
+    """Least-squares w of A w = 1 for A (n, 2), by the 2x2 normal equations (zeros if singular)."""
+    g00, g01, g11 = float(A[:, 0] @ A[:, 0]), float(A[:, 0] @ A[:, 1]), float(A[:, 1] @ A[:, 1])
+    r0, r1 = float(A[:, 0].sum()), float(A[:, 1].sum())
+    det = g00 * g11 - g01 * g01
+    if abs(det) <= 1e-12 * max(g00 * g11, 1e-300):
+        return np.zeros(2)
+    return np.array([g11 * r0 - g01 * r1, g00 * r1 - g01 * r0]) / det
+
+
+def type_residuals(x: float, y: float, bounds: np.ndarray, widths: np.ndarray,
+                   pts_by_sector: dict[int, np.ndarray], keep: float = 0.7) -> dict[str, float]:
+    """How well each marker type explains a marker's boundary points, in the frame of its checker lines.
+
+    Sector k lies between the half-lines from the centre (x, y) at angles ``bounds[k]`` and
+    ``bounds[k] + widths[k]`` (radians, image frame); write a boundary point of that sector
+    (``pts_by_sector[k]``, (n, 2) pixels) as (x, y) + s u1 + t u2 with u1, u2 the half-lines' unit
+    vectors (s, t > 0). Divided by the outline's extents along the two half-lines, (s, t) lies, in any
+    affine view of the marker, on the unit L1 ball for a ``diagonal`` (its corners lie on the checker
+    lines), the unit L2 ball for a ``circle`` (the lines are conjugate diameters of the ellipse) and
+    the unit L-infinity ball for a ``square`` (its sides are parallel to the lines). The norms differ
+    by a factor of about 1.4 halfway between the lines, whatever the tilt. The two extents are fitted
+    per sector and type (least squares; the square's by its two sides' medians); returned is, per type,
+    the mean square of (norm - 1) over the best ``keep`` share of the points (occluders, blur at
+    the corners, a stray ray), or {} when no sector has five points."""
+    res: dict[str, list] = {"diagonal": [], "circle": [], "square": []}
+    c = np.array([x, y], float)
+    for k, pts in pts_by_sector.items():
+        a1, a2 = bounds[k], bounds[k] + widths[k]
+        M = np.array([[math.cos(a1), math.cos(a2)], [math.sin(a1), math.sin(a2)]])
+        if abs(np.linalg.det(M)) < 0.2:  # lines within 12 degrees: no frame
+            continue
+        st = np.linalg.solve(M, (np.asarray(pts, float) - c).T).T
+        st = st[(st > 0).all(1)]
+        if len(st) < 5:
+            continue
+        s, t = st[:, 0], st[:, 1]
+        st2 = st * st
+        res["diagonal"].append(st @ _unit_lstsq(st) - 1.0)  # s / a + t / b = 1
+        res["circle"].append(np.sqrt(np.maximum(st2 @ _unit_lstsq(st2), 0.0)) - 1.0)  # (s/a)^2 + (t/b)^2 = 1
+        ia, ib = 1.0 / s.max(), 1.0 / t.max()
+        for _ in range(4):  # max(s / a, t / b) = 1: each point on the side it is nearer
+            side = s * ia >= t * ib
+            if side.any():
+                ia = 1.0 / float(np.median(s[side]))
+            if not side.all():
+                ib = 1.0 / float(np.median(t[~side]))
+        res["square"].append(np.maximum(s * ia, t * ib) - 1.0)
+    if not res["diagonal"]:
+        return {}
+    out = {}
+    for mtype, r in res.items():
+        e = np.sort(np.concatenate(r) ** 2)
+        out[mtype] = float(np.mean(e[:max(int(keep * len(e)), 1)]))
+    return out
 
 
 def _ellipse_residual(pts: np.ndarray) -> tuple[float, Any]:
@@ -778,7 +839,11 @@ class _Verifier:
                      opp=core["opp"], hull_fallback=hull_fallback, **outer)
         self.last_features = feats
         score = marker_score(feats)
-        return _Verified(x, y, mtype, radius, score, outline, (D, B))
+        # the outline model keeps the rule of _fit_outline (the score was fitted on its outlines); the
+        # type reported comes from the checker-line frame, which holds under tilt and uses every point
+        residuals = type_residuals(x, y, core["bounds"], core["widths"], fit["pts_by_sector"])
+        reported = min(residuals, key=residuals.get) if residuals else mtype
+        return _Verified(x, y, reported, radius, score, outline, (D, B))
 
     def _fit_outline(self, x, y, core, sec, f, inner, pol_dark: bool | None, r0: float,
                      blended: int | None = None) -> dict | str:
@@ -890,7 +955,7 @@ class _Verifier:
             pair = (0, 2) if err[0] + err[2] <= err[1] + err[3] else (1, 3)
             pol_dark = bool(core["dark"][pair[0]])
             e1, e2 = [e1[k] for k in pair], [e2[k] for k in pair]
-        return dict(mtype=mtype, pol_dark=pol_dark, e1=e1, e2=e2, ell=ell, e_model=e_model, r0=r0, ok=ok,
+        return dict(mtype=mtype, pts_by_sector=pts_by_sector, pol_dark=pol_dark, e1=e1, e2=e2, ell=ell, e_model=e_model, r0=r0, ok=ok,
                     rays=rays & ~lost, e_rel=e_model / r0)
 
     def _with_outline(self, fit: dict | str, x: float, y: float, core: dict, core_r: float) -> dict | str:

@@ -338,6 +338,51 @@ def test_two_line_fit_finds_the_corner_of_a_polyline():
     assert _two_line_fit(np.column_stack([20 * np.cos(t), 20 * np.sin(t)]))[0] > 0.2
 
 
+
+def _line_frame_points(mtype: str, A: np.ndarray, centre: np.ndarray, quadrants=(0, 2), n: int = 16):
+    """Boundary points of the sectors in ``quadrants`` of a unit marker (checker lines = the axes;
+    square |u|, |v| <= 1, circle u^2 + v^2 <= 1, diagonal |u| + |v| <= 1) mapped by the affine x = A u +
+    centre, with the sector bounds and widths the verifier would see (angles in the image)."""
+    norm = {"square": np.inf, "circle": 2, "diagonal": 1}[mtype]
+    axes = [np.array(v, float) for v in ((1, 0), (0, 1), (-1, 0), (0, -1))]
+    img_ang = np.array([np.arctan2(*(A @ v)[::-1]) % (2 * np.pi) for v in axes])
+    order = np.argsort(img_ang)
+    bounds = img_ang[order]
+    widths = np.diff(np.concatenate([bounds, bounds[:1] + 2 * np.pi]))
+    pts = {}
+    for q in quadrants:
+        phi = (q + np.linspace(0.12, 0.88, n)) * np.pi / 2
+        d = np.column_stack([np.cos(phi), np.sin(phi)])
+        u = d / np.linalg.norm(d, ord=norm, axis=1)[:, None]
+        pts[int(np.nonzero(order == q)[0][0])] = u @ A.T + centre
+    return bounds, widths, pts
+
+
+@pytest.mark.parametrize("mtype", ["square", "circle", "diagonal"])
+def test_type_residuals_tell_the_types_apart_in_any_affine_view(mtype):
+    from cpdetect.classical import type_residuals
+
+    rng = np.random.default_rng(["square", "circle", "diagonal"].index(mtype))
+    centre = np.array([200.0, 150.0])
+    for trial in range(20):
+        # a view up to 60 degrees of tilt, any rotation, 15 to 60 px
+        tilt = rng.uniform(0, np.radians(60))
+        R = lambda a: np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])  # noqa: E731
+        A = rng.uniform(15, 60) * R(rng.uniform(0, 2 * np.pi)) @ np.diag([1.0, np.cos(tilt)]) @ R(rng.uniform(0, 7))
+        bounds, widths, pts = _line_frame_points(mtype, A, centre)
+        exact = type_residuals(*centre, bounds, widths, pts)
+        assert exact[mtype] < 1e-12
+        assert min(v for k, v in exact.items() if k != mtype) > 1e-3  # a 3 % rms misfit at least
+        # 0.15 px of noise, and a quarter of one sector's points pulled in by an occluder
+        noisy = {k: p + rng.normal(0, 0.15, p.shape) for k, p in pts.items()}
+        k0 = next(iter(noisy))
+        noisy[k0][:4] = centre + 0.6 * (noisy[k0][:4] - centre)
+        res = type_residuals(*centre, bounds, widths, noisy)
+        assert min(res, key=res.get) == mtype
+    # too few points in every sector: no answer
+    assert type_residuals(*centre, bounds, widths, {k: p[:4] for k, p in pts.items()}) == {}
+
+
 def test_opposite_mismatch_allows_a_shadow_over_two_adjacent_sectors():
     from cpdetect.classical import opposite_mismatch
 
