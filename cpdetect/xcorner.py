@@ -48,8 +48,11 @@ def xcorner_contrast(level: np.ndarray, sigma: float = 1.5) -> np.ndarray:
     lxx = cv2.Sobel(g, cv2.CV_32F, 2, 0, ksize=3, scale=0.25)
     lyy = cv2.Sobel(g, cv2.CV_32F, 0, 2, ksize=3, scale=0.25)
     lxy = cv2.Sobel(g, cv2.CV_32F, 1, 1, ksize=3, scale=0.25)
-    negdet = cv2.subtract(cv2.multiply(lxy, lxy), cv2.multiply(lxx, lyy))
-    np.maximum(negdet, 0.0, out=negdet)
+    # in place: fresh arrays of a 45 MP photograph's search image cost more than the arithmetic
+    cv2.multiply(lxx, lyy, dst=lxx)
+    cv2.multiply(lxy, lxy, dst=lxy)
+    negdet = cv2.subtract(lxy, lxx, dst=lxy)
+    cv2.max(negdet, 0.0, dst=negdet)
     cv2.sqrt(negdet, negdet)
     negdet *= np.float32(np.pi * sigma * sigma)
     return negdet
@@ -79,13 +82,16 @@ def find_candidates(levels: list[np.ndarray], min_contrast: float, max_per_level
         c = xcorner_contrast(lev, sigma)
         if maps is not None:
             maps.append(c)
-        peak = (c >= cv2.dilate(c, kernel)) & (c >= min_contrast)
-        peak[:border] = peak[-border:] = False
-        peak[:, :border] = peak[:, -border:] = False
-        ys, xs = np.nonzero(peak)
+        # local maxima (equal to the nms x nms maximum) among the pixels above the threshold
+        inner_c = c[border:c.shape[0] - border, border:c.shape[1] - border]
+        ys, xs = np.nonzero(inner_c >= min_contrast)
+        ys += border
+        xs += border
+        vals = c[ys, xs]
+        top = vals >= cv2.dilate(c, kernel)[ys, xs]
+        ys, xs, vals = ys[top], xs[top], vals[top]
         if xs.size == 0:
             continue
-        vals = c[ys, xs]
         order = np.argsort(-vals)[:max_per_level]
         xs, ys, vals = xs[order], ys[order], vals[order]
         # parabolic sub-pixel peak (enough to seed the verifier), all peaks at once in float32
