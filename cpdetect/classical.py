@@ -925,7 +925,10 @@ class _Verifier:
             ok &= ~missing[sec]
             if missing.sum() > 2 or (missing & np.roll(missing, 2)).any():
                 return "marker boundary not found (fine pass)"
-        elif ok.sum() < 0.8 * (rays & ~lost).sum() or ok.sum() < 0.4 * rays.sum():
+        elif ok.sum() < 0.65 * (rays & ~lost).sum() or ok.sum() < 0.4 * rays.sum():
+            # an occluder hides a run of rays (their boundary lies short of or beyond their
+            # neighbours'): a third of the rays may go (instead of a fifth: train-split sets dev505,
+            # fit11, train101 +0 / +6 / +16 markers found, +1 / 0 / +1 false ones)
             return "marker boundary not found (fine pass)"
         pts_by_sector = {}
         for k in sectors:
