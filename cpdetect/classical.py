@@ -703,7 +703,9 @@ class _Verifier:
         opp = float(opposite_mismatch(lv)[0])
         if opp > 0.35:
             return "opposite sectors differ"
-        if max(spreads) > 0.3 * C:
+        # (the median deviation: an occluder over part of a sector raises it; 0.3 -> 0.36 found
+        # +2 / +1 / +3 markers on the train-split sets dev505 / fit11 / train101, no false ones)
+        if max(spreads) > 0.36 * C:
             return "sectors not uniform"
         # wedges, not lines: every core ring must follow the sector pattern (a thin line crossing
         # covers an angle that shrinks with the radius)
