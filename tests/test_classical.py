@@ -383,6 +383,28 @@ def test_type_residuals_tell_the_types_apart_in_any_affine_view(mtype):
     assert type_residuals(*centre, bounds, widths, {k: p[:4] for k, p in pts.items()}) == {}
 
 
+
+@pytest.mark.parametrize("mtype", ["square", "circle", "diagonal"])
+def test_line_frame_outline_recovers_the_outline_from_two_sectors(mtype):
+    from cpdetect.classical import line_frame_outline
+
+    centre = np.array([120.0, 90.0])
+    A = np.array([[30.0, 8.0], [-5.0, 20.0]])  # a sheared, rotated, tilted view
+    bounds, widths, pts = _line_frame_points(mtype, A, centre)
+    poly = line_frame_outline(*centre, bounds, widths, pts, mtype)
+    area = 0.5 * abs(np.dot(poly[:, 0], np.roll(poly[:, 1], -1)) - np.dot(poly[:, 1], np.roll(poly[:, 0], -1)))
+    unit_area = {"square": 4.0, "diagonal": 2.0, "circle": np.pi}[mtype]
+    # exact for the polygons; the circle's 32-gon has 1.3 % less area than the ellipse
+    tol = 0.02 if mtype == "circle" else 1e-9
+    assert abs(area / (unit_area * abs(np.linalg.det(A))) - 1.0) < tol
+    corners = {"square": [(1, 1), (-1, 1), (-1, -1), (1, -1)], "diagonal": [(1, 0), (0, 1), (-1, 0), (0, -1)],
+               "circle": [(1, 0), (0, 1), (-1, 0), (0, -1)]}[mtype]
+    for u in corners:  # the outline passes through the shape's corners (circle: its conjugate diameters)
+        assert np.min(np.hypot(*(poly - (A @ np.array(u, float) + centre)).T)) < 1e-9
+    # a half-line no sector measured: no outline
+    assert line_frame_outline(*centre, bounds, widths, {k: p for k, p in list(pts.items())[:1]}, mtype) is None
+
+
 def test_opposite_mismatch_allows_a_shadow_over_two_adjacent_sectors():
     from cpdetect.classical import opposite_mismatch
 
