@@ -17,8 +17,10 @@ Pipeline for one image:
    dominant, constant phase: under perspective, lines through the centre stay lines through it),
    exactly four alternating sectors, opposite sectors of equal level (or equal but for one shadow
    over two adjacent sectors), uniform sectors, enough contrast;
-   then per-ray boundaries of the sectors (where the pattern ends), the outline model fitted to them
-   (square: two straight sides per sector; diagonal: one straight side; circle: an ellipse), and an
+   then per-ray boundaries of the sectors (where the pattern ends; a third of the rays may be hidden
+   by an occluder), the outline model fitted to them (square: two straight sides per sector;
+   diagonal: one straight side; circle: an ellipse; where its corners fail, the outline from the
+   extents along the four checker half-lines, :func:`line_frame_outline`, at a higher score), and an
    outer ring beyond the outline that must not continue the checker (rejects X-corners inside larger
    checkerboards and tag bit patterns). Grout and mullion crosses fail the sector test (thin lines,
    not solid wedges); edges, text and texture fail the core or the outline.
