@@ -354,7 +354,11 @@ def type_residuals(x: float, y: float, bounds: np.ndarray, widths: np.ndarray,
     per sector and type (least squares; the square's by its two sides' medians); returned is, per type,
     the mean square of (norm - 1) over the best ``keep`` share of the points (occluders, blur at
     the corners, a stray ray), or {} when no sector has five points."""
-    fits = _line_frame_fits(x, y, bounds, widths, pts_by_sector)
+    return _residuals_of(_line_frame_fits(x, y, bounds, widths, pts_by_sector), keep)
+
+
+def _residuals_of(fits: dict[str, dict[int, tuple]], keep: float = 0.7) -> dict[str, float]:
+    """:func:`type_residuals` from :func:`_line_frame_fits`' result."""
     if not fits["diagonal"]:
         return {}
     out = {}
@@ -370,9 +374,14 @@ def line_frame_outline(x: float, y: float, bounds: np.ndarray, widths: np.ndarra
     ``mtype`` from the extents along its four checker half-lines that :func:`type_residuals` fits
     (each half-line bounds two sectors: the estimates of the sectors seen are averaged). None when a
     half-line has no valid estimate."""
-    fits = _line_frame_fits(x, y, bounds, widths, pts_by_sector)[mtype]
+    return _outline_of(_line_frame_fits(x, y, bounds, widths, pts_by_sector), x, y, bounds, widths, mtype)
+
+
+def _outline_of(fits: dict[str, dict[int, tuple]], x: float, y: float, bounds: np.ndarray, widths: np.ndarray,
+                mtype: str) -> np.ndarray | None:
+    """:func:`line_frame_outline` from :func:`_line_frame_fits`' result."""
     est: dict[int, list] = {j: [] for j in range(4)}
-    for k, (_, ea, eb) in fits.items():
+    for k, (_, ea, eb) in fits[mtype].items():
         est[k].append(ea)
         est[(k + 1) % 4].append(eb)
     ext = np.array([np.mean(v) if v else np.nan for v in est.values()])
@@ -387,6 +396,7 @@ def line_frame_outline(x: float, y: float, bounds: np.ndarray, widths: np.ndarra
         for sn, tn in unit:
             pts.append((x, y) + sn * ext[k] * u1 + tn * ext[(k + 1) % 4] * u2)
     return np.array(pts)
+
 
 def _ellipse_residual(pts: np.ndarray) -> tuple[float, Any]:
     import cv2
@@ -910,8 +920,10 @@ class _Verifier:
             return "outline degenerate"
         # the outline model keeps the rule of _fit_outline (the score was fitted on its outlines); the
         # type reported comes from the checker-line frame, which holds under tilt and uses every point
-        residuals = type_residuals(x, y, core["bounds"], core["widths"], fit["pts_by_sector"])
-        reported = min(residuals, key=residuals.get) if residuals else mtype
+        reported = fit.get("type")
+        if reported is None:
+            residuals = type_residuals(x, y, core["bounds"], core["widths"], fit["pts_by_sector"])
+            reported = min(residuals, key=residuals.get) if residuals else mtype
         return _Verified(x, y, reported, radius, score, outline, (D, B))
 
     def _fit_outline(self, x, y, core, sec, f, inner, pol_dark: bool | None, r0: float,
@@ -1027,8 +1039,8 @@ class _Verifier:
             pair = (0, 2) if err[0] + err[2] <= err[1] + err[3] else (1, 3)
             pol_dark = bool(core["dark"][pair[0]])
             e1, e2 = [e1[k] for k in pair], [e2[k] for k in pair]
-        return dict(mtype=mtype, pts_by_sector=pts_by_sector, pol_dark=pol_dark, e1=e1, e2=e2, ell=ell, e_model=e_model, r0=r0, ok=ok,
-                    rays=rays & ~lost, e_rel=e_model / r0)
+        return dict(mtype=mtype, pts_by_sector=pts_by_sector, pol_dark=pol_dark, e1=e1, e2=e2, ell=ell,
+                    e_model=e_model, r0=r0, ok=ok, rays=rays & ~lost, e_rel=e_model / r0)
 
     def _with_outline(self, fit: dict | str, x: float, y: float, core: dict, core_r: float) -> dict | str:
         """Adds the outline polygon, its equal-area radius and ``near`` to a fit (or says why not)."""
@@ -1040,11 +1052,11 @@ class _Verifier:
             # needs no side or corner of its own to be seen whole; kept only at a score of
             # LINE_FRAME_MIN_SCORE (train-split dev505 / fit11 / train101: +1 / +6 / +16 markers
             # found, 0 / +1 / -1 false ones; at any score dev505 / fit11 +1 / +7 with +1 / +2 false)
-            res = type_residuals(x, y, core["bounds"], core["widths"], fit["pts_by_sector"])
+            fits = _line_frame_fits(x, y, core["bounds"], core["widths"], fit["pts_by_sector"])
+            res = _residuals_of(fits)
             if res:
-                outline = line_frame_outline(x, y, core["bounds"], core["widths"], fit["pts_by_sector"],
-                                             min(res, key=res.get))
-                fit = dict(fit, line_frame=True)
+                fit = dict(fit, line_frame=True, type=min(res, key=res.get))
+                outline = _outline_of(fits, x, y, core["bounds"], core["widths"], fit["type"])
         if outline is None or not self._encloses(outline, x, y):
             # the model's corners are unreliable (strong tilt, occlusion)
             # (a hull of the boundary points and their reflection through the centre would do as an
