@@ -535,8 +535,7 @@ class _Verifier:
             xy[:, 0, None, None] + radii2[:, :, None] * self.cos[None, None, :],
             xy[:, 1, None, None] + radii2[:, :, None] * self.sin[None, None, :],
             (radii2 * (TWO_PI / self.N_THETA))[:, :, None]).astype(np.float64))
-        h2 = (P2 @ np.cos(2 * self.theta) - 1j * (P2 @ np.sin(2 * self.theta))) / self.N_THETA
-        q2 = math.sqrt(2) * np.abs(h2) / (P2.std(2) + 1e-6)
+        h2, q2, _ = self._second_harmonic(P2)
         maybe = np.nonzero((q2.min(1) >= 0.95 * q_min)
                            & (np.abs(_wrap(np.angle(h2[:, 1]) - np.angle(h2[:, 0]))) <= math.radians(27)))[0]
         passed = np.zeros(len(xy), bool)
@@ -544,6 +543,14 @@ class _Verifier:
         passed[maybe], feats = self._prefilter_rings(xy[maybe], np.asarray(r_start)[maybe], q_min, sub(chat),
                                                      sub(level))
         return passed, feats
+
+    def _second_harmonic(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rings P (..., N_THETA) -> their second angular harmonic h2, its strength q (sqrt 2 |h2| over
+        the ring's standard deviation: 1 for a pure cos 2t profile) and that deviation (+1e-6); the
+        mean drops out of h2 (cos 2t and sin 2t sum to zero over the ring)."""
+        std = P.std(-1) + 1e-6
+        h2 = (P @ np.cos(2 * self.theta) - 1j * (P @ np.sin(2 * self.theta))) / self.N_THETA
+        return h2, math.sqrt(2) * np.abs(h2) / std, std
 
     def _prefilter_rings(self, xy: np.ndarray, r_start: np.ndarray, q_min: float, chat: np.ndarray | None,
                          level: np.ndarray | None) -> tuple[np.ndarray, dict | None]:
@@ -561,10 +568,7 @@ class _Verifier:
         ok = ~np.isnan(P).any(axis=(1, 2))
         P = np.nan_to_num(P)
         mean = P.mean(2, keepdims=True)
-        std = P.std(2) + 1e-6
-        # the second harmonic; the mean drops out (cos 2t and sin 2t sum to zero over the ring)
-        h2 = (P @ np.cos(2 * self.theta) - 1j * (P @ np.sin(2 * self.theta))) / self.N_THETA
-        q = math.sqrt(2) * np.abs(h2) / std
+        h2, q, std = self._second_harmonic(P)
         dphi = np.abs(_wrap(np.angle(h2) - np.angle(h2[:, :1])))
         # exactly four sectors in the mean normalised profile (as :meth:`core` will require)
         T = ((P - mean) / std[:, :, None]).mean(1)

@@ -338,7 +338,6 @@ def test_two_line_fit_finds_the_corner_of_a_polyline():
     assert _two_line_fit(np.column_stack([20 * np.cos(t), 20 * np.sin(t)]))[0] > 0.2
 
 
-
 def _line_frame_points(mtype: str, A: np.ndarray, centre: np.ndarray, quadrants=(0, 2), n: int = 16):
     """Boundary points of the sectors in ``quadrants`` of a unit marker (checker lines = the axes;
     square |u|, |v| <= 1, circle u^2 + v^2 <= 1, diagonal |u| + |v| <= 1) mapped by the affine x = A u +
@@ -381,7 +380,6 @@ def test_type_residuals_tell_the_types_apart_in_any_affine_view(mtype):
         assert min(res, key=res.get) == mtype
     # too few points in every sector: no answer
     assert type_residuals(*centre, bounds, widths, {k: p[:4] for k, p in pts.items()}) == {}
-
 
 
 @pytest.mark.parametrize("mtype", ["square", "circle", "diagonal"])
