@@ -2,8 +2,9 @@
 
 1. A generated set with *test*-split backgrounds (never used for tuning): ``--n`` images of 640x480
    plus ``--n-large`` of 1600x1200. For each detector: marker recall (also apart for the uncovered
-   markers and those over 2 % covered), precision, false markers per image, type accuracy, centre error (mean, median, p95, per radius bin, mean dx/dy for bias) and
-   throughput. Peers on the same images:
+   markers, those over 2 % covered and those whose centre no occluder hides), precision, false
+   markers per image, type accuracy, centre error (mean, median, p95, per radius bin, mean dx/dy for
+   bias) and throughput. Peers on the same images:
    - chess-corners (``chess_corners``, Rust ChESS and Radon X-corner detectors, default multiscale
      presets): its X-corners matched to the true markers with the same tolerance
      (cpdetect.evaluate.tolerance_px): recall, false corners per image, centre error;
@@ -64,11 +65,16 @@ def _covered(marker) -> bool:
     return float(marker.extra.get("occluded_frac", 0.0)) > COVERED_FRAC
 
 
-def _recall_split(found: list[bool], covered: list[bool]) -> dict:
-    """Recall of the uncovered and of the partly covered markers, with their counts."""
-    f, c = np.asarray(found, bool), np.asarray(covered, bool)
-    return {"uncovered": {"markers": int((~c).sum()), "recall": float(f[~c].mean()) if (~c).any() else None},
-            "covered": {"markers": int(c.sum()), "recall": float(f[c].mean()) if c.any() else None}}
+def _recall_split(found: list[bool], truths: list) -> dict:
+    """Recall of the uncovered and of the partly covered markers, and of those whose centre no
+    occluder hides (an aiming point under an occluder cannot be measured), with their counts."""
+    f = np.asarray(found, bool)
+    c = np.asarray([_covered(t) for t in truths], bool)
+    v = np.asarray([not t.extra.get("centre_hidden", False) for t in truths], bool)
+
+    def part(m):
+        return {"markers": int(m.sum()), "recall": float(f[m].mean()) if m.any() else None}
+    return {"uncovered": part(~c), "covered": part(c), "centre_visible": part(v)}
 
 
 def bench_classical(datasets, det) -> dict:
@@ -78,7 +84,7 @@ def bench_classical(datasets, det) -> dict:
 
     n_img = n_truth = n_det = tp = type_ok = 0
     errs, dxs, dys, by_bin, mp, secs = [], [], [], {}, 0.0, 0.0
-    found, covered = [], []
+    found, truths = [], []
     for ds in datasets:
         for item in ds.images:
             img = cv2.imread(str(ds.image_path(item)), cv2.IMREAD_COLOR)
@@ -93,7 +99,7 @@ def bench_classical(datasets, det) -> dict:
             tp += len(pairs)
             hit = {m.truth for m in pairs}
             found += [i in hit for i in range(len(item.markers))]
-            covered += [_covered(t) for t in item.markers]
+            truths += item.markers
             for m in pairs:
                 d, t = res.detections[m.det], item.markers[m.truth]
                 errs.append(m.distance)
@@ -103,7 +109,7 @@ def bench_classical(datasets, det) -> dict:
                 b = "8-16" if t.radius_px < 16 else "16-32" if t.radius_px < 32 else "32-64" if t.radius_px < 64 else "64+"
                 by_bin.setdefault(b, []).append(m.distance)
     return {"images": n_img, "markers": n_truth, "detections": n_det, "recall": tp / max(n_truth, 1),
-            "recall_by_cover": _recall_split(found, covered),
+            "recall_by_cover": _recall_split(found, truths),
             "precision": tp / max(n_det, 1), "false_markers_per_image": (n_det - tp) / max(n_img, 1),
             "type_accuracy": type_ok / max(tp, 1), "centre_error_px": _stats(errs),
             "centre_error_by_radius_px": {k: _stats(v) for k, v in sorted(by_bin.items())},
@@ -120,7 +126,7 @@ def bench_chess(datasets, preset: str) -> dict:
     det = chess_corners.Detector(getattr(chess_corners.DetectorConfig, preset)())
     n_img = n_truth = n_corners = tp = 0
     errs, secs, mp = [], 0.0, 0.0
-    found, covered = [], []
+    found, truths = [], []
     for ds in datasets:
         for item in ds.images:
             g = np.ascontiguousarray(cv2.imread(str(ds.image_path(item)), cv2.IMREAD_GRAYSCALE))
@@ -134,7 +140,7 @@ def bench_chess(datasets, preset: str) -> dict:
             n_corners += len(xy)
             used = np.zeros(len(xy), bool)
             for t in item.markers:  # nearest unused corner within the tolerance
-                covered.append(_covered(t))
+                truths.append(t)
                 found.append(False)
                 if not len(xy):
                     continue
@@ -147,7 +153,7 @@ def bench_chess(datasets, preset: str) -> dict:
                     found[-1] = True
                     errs.append(float(d[j]))
     return {"preset": preset, "images": n_img, "markers": n_truth, "corners": n_corners, "recall": tp / max(n_truth, 1),
-            "recall_by_cover": _recall_split(found, covered),
+            "recall_by_cover": _recall_split(found, truths),
             "false_corners_per_image": (n_corners - tp) / max(n_img, 1), "centre_error_px": _stats(errs),
             "seconds_per_image": secs / max(n_img, 1), "megapixels_per_second": mp / max(secs, 1e-9)}
 
@@ -353,7 +359,8 @@ def main(argv=None) -> int:
           f"{c['seconds_per_image']:.2f} s/img")
     def by_cover(v: dict) -> str:
         rc = v["recall_by_cover"]
-        return "  ".join(f"{k} {rc[k]['recall']:.3f} of {rc[k]['markers']}" for k in ("uncovered", "covered")
+        return "  ".join(f"{k} {rc[k]['recall']:.3f} of {rc[k]['markers']}" for k in ("uncovered", "covered",
+                                                                                  "centre_visible")
                          if rc[k]["recall"] is not None)
 
     print(f"   recall: {by_cover(c)}")

@@ -202,10 +202,24 @@ def summarize(records: Sequence[dict], pixel: PixelCounts | None = None, detecto
         "f1": _ratio(2 * tp, 2 * tp + fp + fn),
         "centre_error_px": err,
         "type_accuracy": _ratio(sum(types_ok), len(types_ok)),
+        "centre_visible": centre_visible_recall(records),
         "pixel": pixel.metrics() if pixel is not None and pixel.images > 0 else None,
         "seconds_per_megapixel": _ratio(seconds, megapixels),
         "seconds": seconds,
     }
+
+
+def centre_visible_recall(records: Sequence[dict]) -> dict:
+    """Marker recall without the markers whose aiming point an occluder hides (truth field
+    ``centre_hidden``, written by the generator): nothing in the image locates such a marker's
+    centre, so it is left out of both counts here (a detection matched to one was no false positive
+    either). ``{"markers", "tp", "fn", "recall", "hidden"}``; ``hidden`` counts the markers left out.
+    Markers without the field count as visible."""
+    found = [not m.get("centre_hidden", False) for r in records for m in r["matches"]]
+    missed = [not m.get("centre_hidden", False) for r in records for m in r["missed"]]
+    tp, fn = sum(found), sum(missed)
+    return {"markers": tp + fn, "tp": tp, "fn": fn, "recall": _ratio(tp, tp + fn),
+            "hidden": len(found) + len(missed) - tp - fn}
 
 
 def recall_by(records: Sequence[dict], key: str, edges: Sequence[float] | None = None) -> list[dict]:
@@ -287,6 +301,12 @@ def format_table(metrics: dict) -> str:
         f"   detections {metrics.get('detections', 'n/a')}",
         f"markers    tp {metrics['tp']}   fp {metrics['fp']}   fn {metrics['fn']}   precision "
         f"{f(metrics['precision'])}   recall {f(metrics['recall'])}   f1 {f(metrics['f1'])}",
+    ]
+    cv = metrics.get("centre_visible")
+    if cv and cv.get("hidden"):
+        lines.append(f"           recall {f(cv['recall'])} of the {cv['markers']} markers whose centre is visible "
+                     f"({cv['hidden']} hidden by an occluder)")
+    lines += [
         f"centre     mean {f(e['mean'])} px   median {f(e['median'])} px   p95 {f(e['p95'])} px"
         f"   type accuracy {f(metrics.get('type_accuracy'))}",
     ]
@@ -299,5 +319,6 @@ def format_table(metrics: dict) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["Match", "match_detections", "tolerance_px", "PixelCounts", "score_image", "summarize", "recall_by",
+__all__ = ["Match", "match_detections", "tolerance_px", "PixelCounts", "score_image", "summarize",
+           "centre_visible_recall", "recall_by",
            "evaluate", "format_table", "AP_BINS"]

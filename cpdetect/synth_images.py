@@ -470,11 +470,14 @@ def generate_image(index: int, seed: int, opt: SynthImageOptions, lib: Backgroun
                 box += a * other * shade
         mbox = mask[rm.y0:rm.y0 + bh, rm.x0:rm.x0 + bw]
         mbox[(pattern >= 0.5) & (occ < 0.5)] = 255
+        # an occluder over the aiming point leaves nothing to measure it by, whatever the detector
+        centre_hidden = bool(occluded_frac > 0 and cv2.getRectSubPix(
+            occ, (1, 1), (float(q.centre[0] - rm.x0), float(q.centre[1] - rm.y0)))[0, 0] >= 0.5)
         truths.append(TrueMarker(
             x=float(q.centre[0]), y=float(q.centre[1]), type=q.spec.type, radius_px=radius,
             extra={"tilt_deg": round(q.pose.tilt_deg, 3), "margin": round(q.spec.margin_m, 4),
                    "contrast": round(float(np.mean(b - d)), 2), "texture": round(tex_amount, 3),
-                   "occluded_frac": round(occluded_frac, 4),
+                   "occluded_frac": round(occluded_frac, 4), "centre_hidden": centre_hidden,
                    "visible_frac": 1.0 if q.inside else round(min(float(pattern.sum()) / (math.pi * radius ** 2),
                                                                   1.0), 4)}))
 

@@ -10,7 +10,7 @@ from sklearn.metrics import average_precision_score
 import cpdetect.detector as registry
 from cpdetect.cli import main
 from cpdetect.dataset import TrueMarker, load_dataset, read_mask
-from cpdetect.evaluate import PixelCounts, evaluate, match_detections, tolerance_px
+from cpdetect.evaluate import PixelCounts, evaluate, match_detections, score_image, summarize, tolerance_px
 from cpdetect.imageio import read_image
 from cpdetect.synth_images import SynthImageOptions, write_synth_images
 from cpdetect.types import DetectionResult, MarkerDetection
@@ -55,6 +55,19 @@ def test_each_truth_matched_once_and_empty_sides():
     assert len(pairs) == 1 and fp == [1, 2] and fn == []
     assert match_detections([], [tru(0, 0), tru(5, 5)]) == ([], [], [0, 1])
     assert match_detections([det(1, 1)], []) == ([], [0], [])
+
+
+def test_markers_with_a_hidden_centre_are_left_out_of_the_centre_visible_recall():
+    hidden = TrueMarker(100, 100, "square", 8.0, extra={"centre_hidden": True})
+    truths = [tru(0, 0), tru(50, 0), TrueMarker(0, 50, "circle", 8.0, extra={"centre_hidden": False}), hidden,
+              TrueMarker(200, 0, "square", 8.0, extra={"centre_hidden": True})]
+    # found: the first, the third and the first hidden one; missed: the second and the other hidden
+    rec = score_image("a.png", 300, 300, 0.1, [det(0.5, 0), det(0, 50.5), det(100, 101), det(250, 250)], truths)
+    s = summarize([rec])
+    assert (s["tp"], s["fp"], s["fn"]) == (3, 1, 2)
+    cv = s["centre_visible"]
+    assert (cv["markers"], cv["tp"], cv["fn"], cv["hidden"]) == (3, 2, 1, 2)
+    assert math.isclose(cv["recall"], 2 / 3)
 
 
 def test_pixel_iou_f1_exact_on_hand_case():

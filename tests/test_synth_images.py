@@ -162,6 +162,24 @@ def test_occlusion_removes_mask_pixels(lib):
     assert len(fracs) >= 4 and max(fracs) > 0.2
 
 
+def test_centre_hidden_says_whether_the_occluder_covers_the_aiming_point(lib):
+    opt = SynthImageOptions(occlusion_prob=1.0, occlusion_max=0.4, radius_min_px=20, confusers=(0, 0))
+    seen = {True: 0, False: 0}
+    for i in range(20):
+        s = generate_image(i, 5, opt, lib)
+        for m in s.markers:
+            # the pattern covers the centre whole, so the mask there is off only under an occluder
+            x, y = int(round(m.x)), int(round(m.y))
+            patch = s.mask[max(y - 1, 0):y + 2, max(x - 1, 0):x + 2]
+            if m.extra["centre_hidden"]:
+                assert m.extra["occluded_frac"] > 0
+                assert (patch == 0).any()
+            elif patch.size:
+                assert (patch > 0).any()
+            seen[m.extra["centre_hidden"]] += 1
+    assert seen[True] >= 2 and seen[False] >= 10
+
+
 def test_held_out_split_is_fixed_and_disjoint():
     train, test, every = list_backgrounds("train"), list_backgrounds("test"), list_backgrounds("all")
     assert {b.file for b in train}.isdisjoint({b.file for b in test})
