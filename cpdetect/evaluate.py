@@ -186,11 +186,7 @@ def summarize(records: Sequence[dict], pixel: PixelCounts | None = None, detecto
     types_ok = [m["type"] == m["det_type"] for r in records for m in r["matches"]]
     megapixels = sum(r["width"] * r["height"] for r in records) / 1e6
     seconds = sum(r["seconds"] for r in records)
-    if dist.size:
-        err = {"mean": float(dist.mean()), "median": float(np.median(dist)),
-               "p95": float(np.percentile(dist, 95))}
-    else:
-        err = {"mean": float("nan"), "median": float("nan"), "p95": float("nan")}
+    err = _error_stats(dist)
     return {
         "detector": detector,
         "images": len(records),
@@ -202,24 +198,32 @@ def summarize(records: Sequence[dict], pixel: PixelCounts | None = None, detecto
         "f1": _ratio(2 * tp, 2 * tp + fp + fn),
         "centre_error_px": err,
         "type_accuracy": _ratio(sum(types_ok), len(types_ok)),
-        "centre_visible": centre_visible_recall(records),
+        "centre_visible": centre_visible_summary(records),
         "pixel": pixel.metrics() if pixel is not None and pixel.images > 0 else None,
         "seconds_per_megapixel": _ratio(seconds, megapixels),
         "seconds": seconds,
     }
 
 
-def centre_visible_recall(records: Sequence[dict]) -> dict:
-    """Marker recall without the markers whose aiming point an occluder hides (truth field
-    ``centre_hidden``, written by the generator): nothing in the image locates such a marker's
-    centre, so it is left out of both counts here (a detection matched to one was no false positive
-    either). ``{"markers", "tp", "fn", "recall", "hidden"}``; ``hidden`` counts the markers left out.
-    Markers without the field count as visible."""
-    found = [not m.get("centre_hidden", False) for r in records for m in r["matches"]]
-    missed = [not m.get("centre_hidden", False) for r in records for m in r["missed"]]
-    tp, fn = sum(found), sum(missed)
-    return {"markers": tp + fn, "tp": tp, "fn": fn, "recall": _ratio(tp, tp + fn),
-            "hidden": len(found) + len(missed) - tp - fn}
+def centre_visible_summary(records: Sequence[dict]) -> dict:
+    """Marker recall and centre error without the markers whose aiming point an occluder hides
+    (truth field ``centre_hidden``, written by the generator): nothing in the image locates such a
+    marker's centre, so it is left out of both counts here (a detection matched to one was no false
+    positive either). ``{"markers", "tp", "fn", "recall", "hidden", "centre_error_px"}``; ``hidden``
+    counts the markers left out. Markers without the field count as visible."""
+    dist = np.array([m["distance"] for r in records for m in r["matches"] if not m.get("centre_hidden", False)],
+                    float)
+    missed = sum(1 for r in records for m in r["missed"] if not m.get("centre_hidden", False))
+    everyone = sum(len(r["matches"]) + len(r["missed"]) for r in records)
+    tp = int(dist.size)
+    return {"markers": tp + missed, "tp": tp, "fn": missed, "recall": _ratio(tp, tp + missed),
+            "hidden": everyone - tp - missed, "centre_error_px": _error_stats(dist)}
+
+
+def _error_stats(dist: np.ndarray) -> dict:
+    if not dist.size:
+        return {"mean": float("nan"), "median": float("nan"), "p95": float("nan")}
+    return {"mean": float(dist.mean()), "median": float(np.median(dist)), "p95": float(np.percentile(dist, 95))}
 
 
 def recall_by(records: Sequence[dict], key: str, edges: Sequence[float] | None = None) -> list[dict]:
@@ -304,8 +308,10 @@ def format_table(metrics: dict) -> str:
     ]
     cv = metrics.get("centre_visible")
     if cv and cv.get("hidden"):
+        ce = cv["centre_error_px"]
         lines.append(f"           recall {f(cv['recall'])} of the {cv['markers']} markers whose centre is visible "
-                     f"({cv['hidden']} hidden by an occluder)")
+                     f"({cv['hidden']} hidden by an occluder); their centre mean {f(ce['mean'])} px, "
+                     f"p95 {f(ce['p95'])} px")
     lines += [
         f"centre     mean {f(e['mean'])} px   median {f(e['median'])} px   p95 {f(e['p95'])} px"
         f"   type accuracy {f(metrics.get('type_accuracy'))}",
@@ -320,5 +326,5 @@ def format_table(metrics: dict) -> str:
 
 
 __all__ = ["Match", "match_detections", "tolerance_px", "PixelCounts", "score_image", "summarize",
-           "centre_visible_recall", "recall_by",
+           "centre_visible_summary", "recall_by",
            "evaluate", "format_table", "AP_BINS"]
