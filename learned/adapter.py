@@ -39,6 +39,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from cpdetect.centre_reach import CENTRE_REACH_MIN, centre_reach
 from cpdetect.detector import as_gray_uint8, settings_from_dataclass
 from cpdetect.types import DetectionResult, MarkerDetection
 
@@ -90,6 +91,9 @@ class HMASettings:
     its cut on P(marker) (None = the one stored with it). max_sigma_seed_px: with an instance model,
     a blob where no centre is verified or sharp still gets its best refined centre up to this
     uncertainty, and the model decides.
+    min_centre_reach: drop a refined centre where the four sectors do not meet
+    (:func:`cpdetect.centre_reach.centre_reach` below this; 0 keeps every one), the classical
+    detector's cut.
     One thread per detector because cpdetect parallelises over images (``--workers``): torch's
     multi-threaded kernels on an oversubscribed CPU ran 20x slower here (13.7 against 0.71 s per
     megapixel with one other busy process on 2 cores).
@@ -116,6 +120,7 @@ class HMASettings:
     instance_model: str = "auto"
     instance_threshold: float | None = None
     max_sigma_seed_px: float = 1.0
+    min_centre_reach: float = CENTRE_REACH_MIN
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "scales", tuple(float(s) for s in self.scales))
@@ -151,6 +156,8 @@ class HMASettings:
             raise ValueError("instance_threshold must be in (0, 1) (or None)")
         if not self.max_sigma_seed_px > 0:
             raise ValueError("max_sigma_seed_px must be positive")
+        if not self.min_centre_reach >= 0:
+            raise ValueError("min_centre_reach must be 0 or more")
 
 
 def _quad_from_hull(hull: np.ndarray) -> np.ndarray | None:
@@ -363,6 +370,8 @@ class HMADetector:
                         score = model.probability(b.features)
                         keep = score >= cut
                     cx, cy, sigma, mtype = b.centre.x, b.centre.y, b.centre.sigma, b.centre.type
+                    if keep and s.min_centre_reach > 0:
+                        keep = centre_reach(gray, cx, cy, b.radius) >= s.min_centre_reach
             if not keep:
                 if unsure:
                     rejected.append(b.label)
