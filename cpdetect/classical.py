@@ -22,7 +22,9 @@ Pipeline for one image:
    diagonal: one straight side; circle: an ellipse; where its corners fail, the outline from the
    extents along the four checker half-lines, :func:`line_frame_outline`, at a higher score), and an
    outer ring beyond the outline that must not continue the checker (rejects X-corners inside larger
-   checkerboards and tag bit patterns). Grout and mullion crosses fail the sector test (thin lines,
+   checkerboards and tag bit patterns; a background dark beside one sector and bright beside the
+   next, which inverts only those two, is not held against a marker: train-split dev505 / fit11 /
+   train101 +1 / +2 / +6 markers, no false one). Grout and mullion crosses fail the sector test (thin lines,
    not solid wedges); edges, text and texture fail the core or the outline.
 4. **Type** in the frame of the checker lines (:func:`type_residuals`): a sector's boundary points,
    divided by the outline's extents along its two bounding lines, lie on the unit L1 ball for a
@@ -916,7 +918,7 @@ class _Verifier:
         mtype, e_model, r0, ok, rays = fit["mtype"], fit["e_model"], fit["r0"], fit["ok"], fit["rays"]
         if radius < 0.8 * self.s.min_radius_px or radius > self.max_radius * 1.1:
             return "size out of range"
-        outer = self.outer_ring(x, y, outline, D, B, C, ~core["dark"][sec], (f > 0.15) & (f < 0.85))
+        outer = self.outer_ring(x, y, outline, D, B, C, ~core["dark"][sec], (f > 0.15) & (f < 0.85), sec)
         if isinstance(outer, str):
             return outer
         feats = dict(q=core["q"], agree=core["agree"], logC=math.log(C), spread=core["spread"],
@@ -1132,7 +1134,8 @@ class _Verifier:
             return None
         return pts
 
-    def outer_ring(self, x, y, outline, D, B, C, bright_ray: np.ndarray, mid_ray: np.ndarray) -> str | dict:
+    def outer_ring(self, x, y, outline, D, B, C, bright_ray: np.ndarray, mid_ray: np.ndarray,
+                   sec: np.ndarray) -> str | dict:
         """Around the outline the checker must not continue: just outside (1.12 and 1.25 times the
         outline distance) the surroundings of dark sectors and of bright sectors must not both be
         inverted (bright next to dark, dark next to bright: a checkerboard or a tag's bit cells), and
@@ -1177,7 +1180,19 @@ class _Verifier:
                 continue
             dark_next_to_bright = np.mean(row[fin & bright_ray] < D + 0.3 * C) if (fin & bright_ray).any() else 0
             bright_next_to_dark = np.mean(row[fin & ~bright_ray] > B - 0.3 * C) if (fin & ~bright_ray).any() else 0
-            inverted = max(inverted, float(min(dark_next_to_bright, bright_next_to_dark)))
+            both = float(min(dark_next_to_bright, bright_next_to_dark))
+            # a background edge past the marker, dark on one side and bright on the other, inverts the
+            # surroundings of two adjacent sectors (the bright one on the dark side, the dark one on
+            # the bright side) and leaves the other two alone; a checkerboard inverts three or four
+            inv = np.where(bright_ray, row < D + 0.3 * C, row > B - 0.3 * C)
+            shares = np.array([float(np.mean(inv[fin & (sec == k)])) if (fin & (sec == k)).any() else np.nan
+                               for k in range(4)])
+            if np.isfinite(shares).all():
+                hi = np.argsort(-shares)[:2]
+                lo = np.argsort(-shares)[2:]
+                if (hi[0] - hi[1]) % 2 == 1 and shares[hi].min() >= 0.5 and shares[lo].max() <= 0.2:
+                    both = float(shares[lo].max())
+            inverted = max(inverted, both)
             if min(dark_next_to_bright, bright_next_to_dark) > 0.6:
                 return "inverted surroundings (checkerboard or tag)"
         for i, row in enumerate(V[2:]):

@@ -533,3 +533,31 @@ def test_painted_marker_found_from_files_at_full_and_reduced_search(tmp_path):
         assert len(res.detections) == 1
         m = res.detections[0]
         assert 0.0 < np.hypot(m.x - 250.4, m.y - 180.6) < tol
+
+
+@pytest.mark.parametrize("marker_type", MARKER_TYPES)
+def test_marker_on_a_background_dark_beside_one_sector_and_bright_beside_the_next(det, marker_type):
+    # beyond one bright sector the background has the ink's level, beyond most of the next (dark)
+    # sector the paper's: those two adjacent sectors look inverted beyond the outline, as all four of
+    # a checkerboard's would; the other two face a grey wall
+    from cpdetect.markers import frontal_homography
+
+    center, angle, radius, shape = (131.4, 118.7), 0.35, 30.0, (240, 260)
+    spec = MarkerSpec(marker_type, size_m=1.0)
+    rm = render_marker(spec, frontal_homography(center, radius, angle, spec), shape)
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    rel = np.degrees(np.mod(np.arctan2(yy - center[1], xx - center[0]) - angle, 2 * np.pi))
+    # is the quadrant between the checker lines at 0 and 90 degrees (relative) bright?
+    py = int(round(center[1] + 0.5 * radius * np.sin(angle + np.pi / 4)))
+    px = int(round(center[0] + 0.5 * radius * np.cos(angle + np.pi / 4)))
+    start = 0.0 if rm.dark[py - rm.y0, px - rm.x0] < 0.5 else 90.0  # a bright sector: [start, start + 90)
+    turn = np.mod(rel - start, 360.0)
+    img = np.where((turn >= 350.0) | (turn < 110.0), 35.0, np.where(turn < 190.0, 212.0, 120.0))
+    img = img + textured_background(shape, 5, mean=0.0, amp=4.0)
+    rm.composite(img, 30.0, 218.0)
+    img = np.clip(img + np.random.default_rng(5).normal(0, 1.5, shape) + 0.5, 0, 255).astype(np.uint8)
+    near = [m for m in det.detect(img).detections if np.hypot(m.x - center[0], m.y - center[1]) < 3]
+    assert len(near) == 1
+    assert np.hypot(near[0].x - center[0], near[0].y - center[1]) < 0.1
+    # not held against it as inverted surroundings (counted over all rays: 0.39, score 0.88 for the circle)
+    assert near[0].score > 0.97
