@@ -32,9 +32,16 @@ def ring_samples(gray: np.ndarray, x: float, y: float, radius: float, n: int) ->
     """Angles (n,) and bilinear samples (n,) of ``gray`` on the circle of ``radius`` around (x, y),
     the image border reflected."""
     th = np.arange(n) * (2.0 * math.pi / n)
-    xs = (x + radius * np.cos(th)).astype(np.float32)[None, :]
-    ys = (y + radius * np.sin(th)).astype(np.float32)[None, :]
-    v = cv2.remap(np.asarray(gray, np.float32), xs, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    # only the window the circle passes through is converted (a 45 MP image would cost 0.1 s a ring)
+    h, w = gray.shape[:2]
+    x0, y0 = max(int(math.floor(x - radius)) - 2, 0), max(int(math.floor(y - radius)) - 2, 0)
+    x1, y1 = min(int(math.ceil(x + radius)) + 3, w), min(int(math.ceil(y + radius)) + 3, h)
+    if x1 <= x0 or y1 <= y0:  # the whole circle lies outside the image: the border reflected
+        x0, y0, x1, y1 = 0, 0, w, h
+    win = np.asarray(gray[y0:y1, x0:x1], np.float32)
+    xs = (x - x0 + radius * np.cos(th)).astype(np.float32)[None, :]
+    ys = (y - y0 + radius * np.sin(th)).astype(np.float32)[None, :]
+    v = cv2.remap(win, xs, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
     return th, v[0].astype(np.float64)
 
 

@@ -5,7 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
-from cpdetect.centre_reach import CENTRE_REACH_MIN, centre_reach, edge_blur_px, second_harmonic
+from cpdetect.centre_reach import CENTRE_REACH_MIN, centre_reach, edge_blur_px, ring_samples, second_harmonic
 from cpdetect.markers import MarkerSpec, frontal_homography, projected_center, projected_radius, render_marker
 
 
@@ -63,3 +63,14 @@ def test_a_blurred_noisy_marker_still_reaches_its_centre():
     noisy = img + np.random.default_rng(3).normal(0.0, 12.0, img.shape).astype(np.float32)
     assert 3.5 < edge_blur_px(noisy, cx, cy, radius) < 7.0
     assert centre_reach(noisy, cx, cy, radius) > CENTRE_REACH_MIN + 0.15
+
+
+def test_ring_samples_from_a_window_equal_those_from_the_whole_image():
+    rng = np.random.default_rng(1)
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (120, 150)).astype(np.float32), (0, 0), 2.0)
+    for x, y, r in ((75.3, 60.2, 20.0), (4.5, 7.0, 12.0), (148.0, 118.5, 30.0)):  # inside, across corners
+        th = np.arange(90) * (2 * np.pi / 90)
+        xs = (x + r * np.cos(th)).astype(np.float32)[None]
+        ys = (y + r * np.sin(th)).astype(np.float32)[None]
+        full = cv2.remap(img, xs, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)[0]
+        assert np.allclose(ring_samples(img, x, y, r, 90)[1], full, atol=1e-3)
