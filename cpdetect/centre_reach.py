@@ -63,8 +63,9 @@ def edge_blur_px(gray: np.ndarray, x: float, y: float, radius: float) -> float:
     # averaged over a band of radii (the edges are radial) and smoothed along the arc, and that
     # smoothing is taken out of the result again
     v = np.mean([ring_samples(gray, x, y, ro * f, n)[1] for f in BAND], axis=0)
-    k = np.exp(-0.5 * (np.arange(-6, 7) * step / SMOOTH_PX) ** 2)
-    v = np.convolve(np.concatenate([v[-6:], v, v[:6]]), k / k.sum(), mode="valid")
+    half = 6  # samples, 3 px of arc: three smoothing sigmas
+    k = np.exp(-0.5 * (np.arange(-half, half + 1) * step / SMOOTH_PX) ** 2)
+    v = np.convolve(np.concatenate([v[-half:], v, v[:half]]), k / k.sum(), mode="valid")  # around the ring
     grad = np.abs(np.roll(v, -1) - np.roll(v, 1)) / (2.0 * step)
     peaks: list[int] = []
     for i in np.argsort(-grad):
@@ -85,8 +86,8 @@ def centre_reach(gray: np.ndarray, x: float, y: float, radius: float) -> float:
     times the edge blur of :func:`edge_blur_px`, whichever is larger. About 0.55 to 1 on an analytic
     marker at any blur, near 0 where the sectors stop short of the centre."""
     outer = second_harmonic(gray, x, y, max(4.0, 0.5 * radius))
-    inner = second_harmonic(gray, x, y, max(INNER_RADIUS_MIN_PX, INNER_RADIUS_BLURS * edge_blur_px(gray, x, y, radius)))
-    return inner / max(outer, 1e-6)
+    small = max(INNER_RADIUS_MIN_PX, INNER_RADIUS_BLURS * edge_blur_px(gray, x, y, radius))
+    return second_harmonic(gray, x, y, small) / max(outer, 1e-6)
 
 
 __all__ = ["ring_samples", "second_harmonic", "edge_blur_px", "centre_reach", "INNER_RADIUS_MIN_PX",

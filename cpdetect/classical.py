@@ -1188,8 +1188,8 @@ class _Verifier:
             shares = np.array([float(np.mean(inv[fin & (sec == k)])) if (fin & (sec == k)).any() else np.nan
                                for k in range(4)])
             if np.isfinite(shares).all():
-                hi = np.argsort(-shares)[:2]
-                lo = np.argsort(-shares)[2:]
+                order = np.argsort(-shares)
+                hi, lo = order[:2], order[2:]
                 if (hi[0] - hi[1]) % 2 == 1 and shares[hi].min() >= 0.5 and shares[lo].max() <= 0.2:
                     both = float(shares[lo].max())
             inverted = max(inverted, both)
