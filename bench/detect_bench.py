@@ -68,9 +68,11 @@ def _covered(marker) -> bool:
 def _recall_split(found: list[bool], truths: list) -> dict:
     """Recall of the uncovered and of the partly covered markers, and of those whose centre no
     occluder hides (an aiming point under an occluder cannot be measured), with their counts."""
+    from cpdetect.evaluate import centre_hidden
+
     f = np.asarray(found, bool)
     c = np.asarray([_covered(t) for t in truths], bool)
-    v = np.asarray([not t.extra.get("centre_hidden", False) for t in truths], bool)
+    v = np.asarray([not centre_hidden(t.extra) for t in truths], bool)
 
     def part(m):
         return {"markers": int(m.sum()), "recall": float(f[m].mean()) if m.any() else None}
@@ -80,7 +82,7 @@ def _recall_split(found: list[bool], truths: list) -> dict:
 def bench_classical(datasets, det) -> dict:
     import cv2
 
-    from cpdetect.evaluate import match_detections
+    from cpdetect.evaluate import centre_hidden, match_detections
 
     n_img = n_truth = n_det = tp = type_ok = 0
     errs, dxs, dys, by_bin, mp, secs = [], [], [], {}, 0.0, 0.0
@@ -104,7 +106,7 @@ def bench_classical(datasets, det) -> dict:
             for m in pairs:
                 d, t = res.detections[m.det], item.markers[m.truth]
                 errs.append(m.distance)
-                if not t.extra.get("centre_hidden", False):
+                if not centre_hidden(t.extra):
                     errs_visible.append(m.distance)
                 dxs.append(d.x - t.x)
                 dys.append(d.y - t.y)

@@ -24,8 +24,8 @@ Pipeline for one image:
    outer ring beyond the outline that must not continue the checker (rejects X-corners inside larger
    checkerboards and tag bit patterns; a background dark beside one sector and bright beside the
    next, which inverts only those two, is not held against a marker: train-split dev505 / fit11 /
-   train101 +1 / +2 / +6 markers, no false one). Grout and mullion crosses fail the sector test (thin lines,
-   not solid wedges); edges, text and texture fail the core or the outline.
+   train101 +1 / +2 / +6 markers, no false one). Grout and mullion crosses fail the sector test (thin
+   lines, not solid wedges); edges, text and texture fail the core or the outline.
 4. **Type** in the frame of the checker lines (:func:`type_residuals`): a sector's boundary points,
    divided by the outline's extents along its two bounding lines, lie on the unit L1 ball for a
    diagonal, L2 for a circle, L-infinity for a square, in any affine view (train-split sets: type

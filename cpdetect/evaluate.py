@@ -205,15 +205,20 @@ def summarize(records: Sequence[dict], pixel: PixelCounts | None = None, detecto
     }
 
 
+def centre_hidden(fields: dict) -> bool:
+    """Whether a true marker's fields (``TrueMarker.extra`` or a per-image record's match / miss)
+    say an occluder hides its aiming point; markers without the field count as visible."""
+    return bool(fields.get("centre_hidden", False))
+
+
 def centre_visible_summary(records: Sequence[dict]) -> dict:
     """Marker recall and centre error without the markers whose aiming point an occluder hides
     (truth field ``centre_hidden``, written by the generator): nothing in the image locates such a
     marker's centre, so it is left out of both counts here (a detection matched to one was no false
     positive either). ``{"markers", "tp", "fn", "recall", "hidden", "centre_error_px"}``; ``hidden``
     counts the markers left out. Markers without the field count as visible."""
-    dist = np.array([m["distance"] for r in records for m in r["matches"] if not m.get("centre_hidden", False)],
-                    float)
-    missed = sum(1 for r in records for m in r["missed"] if not m.get("centre_hidden", False))
+    dist = np.array([m["distance"] for r in records for m in r["matches"] if not centre_hidden(m)], float)
+    missed = sum(1 for r in records for m in r["missed"] if not centre_hidden(m))
     everyone = sum(len(r["matches"]) + len(r["missed"]) for r in records)
     tp = int(dist.size)
     return {"markers": tp + missed, "tp": tp, "fn": missed, "recall": _ratio(tp, tp + missed),
@@ -326,5 +331,5 @@ def format_table(metrics: dict) -> str:
 
 
 __all__ = ["Match", "match_detections", "tolerance_px", "PixelCounts", "score_image", "summarize",
-           "centre_visible_summary", "recall_by",
+           "centre_hidden", "centre_visible_summary", "recall_by",
            "evaluate", "format_table", "AP_BINS"]
