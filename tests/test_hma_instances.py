@@ -136,3 +136,43 @@ def test_with_a_model_an_unverified_seed_is_judged_instead_of_dropped():
     det = HMADetector.with_backend(OracleBackend(mask), instances=_model(3.0), max_sigma_seed_px=0.5 * sigma,
                                    **strict)
     assert det.detect(noisy).detections == []
+
+
+def _two_markers():
+    """(image, mask of the first marker only, the two true centres): a square and a circle."""
+    a, mask, _ = rendered("square", center=(70.4, 80.7), radius=22.0, angle=0.4, shape=(200, 320))
+    b, _, _ = rendered("circle", center=(240.2, 110.3), radius=24.0, angle=1.1, shape=(200, 320))
+    img = a.copy()
+    img[:, 170:] = b[:, 170:]
+    return img, mask, ((70.4, 80.7), (240.2, 110.3))
+
+
+def test_classical_seeds_keep_a_confirmed_blob_and_add_no_blob_of_their_own():
+    img, mask, (first, second) = _two_markers()
+    drop = _model(-5.0)  # the instance model drops every blob
+    assert HMADetector.with_backend(OracleBackend(mask), instances=drop).detect(img).detections == []
+    det = HMADetector.with_backend(OracleBackend(mask), instances=drop, classical_seeds=True)
+    found = det.detect(img).detections
+    seeds = det._classical_seeds(img)
+    assert sorted(round(d.x) for d in seeds) == [round(first[0]), round(second[0])]
+    # the classical detector finds both markers; only the one on the network's blob is kept
+    assert len(found) == 1
+    assert math.hypot(found[0].x - first[0], found[0].y - first[1]) < 0.1
+    assert found[0].type == "square"
+    blobs, _ = det.candidates(img, det.probability(img).prob, 1.0, seeds=seeds)
+    assert [b.centre.classical for b in blobs] == [True]
+    # without seeds the same call marks nothing as confirmed
+    blobs, _ = det.candidates(img, det.probability(img).prob, 1.0)
+    assert [b.centre.classical for b in blobs] == [False]
+
+
+def test_a_classical_marker_off_the_centre_does_not_confirm_it():
+    from cpdetect.types import MarkerDetection
+    from learned.adapter import _Centre, _with_classical
+
+    c = _Centre(100.0, 50.0, 0.05, "seed")
+    near = MarkerDetection(100.9, 50.0, 0.9, "circle", 20.0, 0.05)
+    far = MarkerDetection(103.0, 50.0, 0.9, "square", 20.0, 0.05)
+    assert _with_classical(c, [far, near], 20.0).classical
+    assert not _with_classical(c, [far], 20.0).classical  # 3 px > max(1.5, 2.0)
+    assert _with_classical(c, [far], 40.0).classical  # within a tenth of 40 px
