@@ -35,10 +35,10 @@ Pipeline for one image:
    circle's arc ~35, a diagonal's single side ~0), the models' residuals deciding in between.
 5. **Centre** by :func:`cpdetect.refine.refine_center` on the full-resolution image, window adapted to
    the radius; **sigma_px** from the fit. A candidate from a coarse pyramid level may sit tens of
-   pixels off a large marker's centre: where the allowed shift exceeds ``COARSE_SHIFT_PX`` the centre
-   is settled on a reduced level first, then at full resolution within half that level's pixel
-   (45 MP bench: the 450 px marker's refinement 150-185 ms -> 9-33 ms, symmetry sigma 0.010 px
-   where the wide window fell back on the Hough lines at 0.058). The four sectors must meet there
+   pixels off a large marker's centre: :func:`cpdetect.refine.refine_center_coarse_to_fine` settles
+   it on an area-reduced window first, then at full resolution within half a reduced pixel (45 MP
+   bench: the 450 px marker's refinement 150-270 ms -> 10-50 ms, symmetry sigma 0.010 px where the
+   wide window fell back on the Hough lines at 0.058). The four sectors must meet there
    (:func:`cpdetect.centre_reach.centre_reach`: the pattern's second harmonic on a ring of 3 px, or
    two edge blurs, is at least 0.3 of that on the marker body); two dark blobs with a gap between
    them and window panes around a mullion cross stop short of it (train-split sets dev505 / fit11 /
@@ -69,7 +69,7 @@ import numpy as np
 from .centre_reach import CENTRE_REACH_MIN, centre_reach
 from .detector import as_gray_uint8, settings_from_dataclass
 from .imageio import paint_image
-from .refine import refine_center
+from .refine import refine_center, refine_center_coarse_to_fine
 from .types import DetectionResult, MarkerDetection
 from .xcorner import build_pyramid, find_candidates
 
@@ -1328,7 +1328,7 @@ class ClassicalDetector:
         gray_c: list[np.ndarray] = []
         cands = find_candidates(pyramid, 0.6 * s.min_contrast, s.max_candidates_per_level, maps=gray_c)
         accepted: list[tuple[_Verified, Any]] = []
-        scan = _Scan(gray, k, s, accepted, levels)
+        scan = _Scan(gray, k, s, accepted)
         with ThreadPoolExecutor(1) as pool:
             # the paint image's X-corners are found beside the gray verification (mostly OpenCV
             # and NumPy work, which runs outside the GIL, against mostly Python work)
@@ -1390,10 +1390,8 @@ class ClassicalDetector:
 class _Scan:
     """Verifies and refines candidates of one pass, appending to ``accepted`` ((_Verified, sigma))."""
 
-    def __init__(self, gray: np.ndarray, k: int, settings: ClassicalSettings, accepted: list,
-                 gray_levels: "_Levels | None" = None):
+    def __init__(self, gray: np.ndarray, k: int, settings: ClassicalSettings, accepted: list):
         self.gray, self.k, self.s, self.accepted = gray, k, settings, accepted
-        self.gray_levels = gray_levels
         self.prefiltered = 0
 
     def run(self, levels: "_Levels", cands: list, min_score: float, paint_search: np.ndarray | None = None) -> int:
@@ -1436,7 +1434,7 @@ class _Scan:
                 rejected += 1
                 continue
             shift = max(2.0 * scale, 0.3 * v.radius)
-            ref = _refine_coarse_to_fine(gray, self.gray_levels, v.x, v.y, v.radius, s.refine_method, shift)
+            ref = refine_center_coarse_to_fine(gray, v.x, v.y, v.radius, s.refine_method, max_shift_px=shift)
             if paint_search is not None:
                 # painted markers: the gray edges may be faint, the paint ones soft (JPEG stores colour
                 # at half resolution); the fit with the smaller sigma wins
@@ -1458,36 +1456,6 @@ class _Scan:
                 continue
             accepted.append((v, sigma))
         return rejected
-
-
-# a refinement allowed to move further than this (full-resolution pixels) settles the centre on a
-# reduced level first: a candidate from a coarse pyramid level can sit tens of pixels off a large
-# marker's centre, and a full-resolution window that wide costs tens of times a narrow one
-COARSE_SHIFT_PX = 16.0
-
-
-def _refine_coarse_to_fine(gray: np.ndarray, levels: "_Levels | None", x: float, y: float, radius: float,
-                           method: str, shift: float):
-    """:func:`refine_center` on ``gray`` from (x, y) within ``shift``; where the shift exceeds
-    COARSE_SHIFT_PX, first on the coarsest level of ``levels`` that leaves the shift at least 8 of its
-    pixels and the radius 8, then at full resolution within half a pixel of that level (at least
-    2 px); the direct refinement where either step fails."""
-    if shift > COARSE_SHIFT_PX and levels is not None:
-        usable = [(sc, img) for sc, img in levels.items if 1.0 < sc <= shift / 8.0 and radius / sc >= 8.0]
-        if usable:
-            sc, img = max(usable, key=lambda t: t[0])
-            # the level's own scale on each axis: halving an odd size is not exactly 2x, and at the far
-            # side of a 45 MP image that alone moves a centre by a few full-resolution pixels
-            h, w = gray.shape[:2]
-            sx, sy = w / img.shape[1], h / img.shape[0]
-            r = refine_center(img, (x + 0.5) / sx - 0.5, (y + 0.5) / sy - 0.5, radius / sc, method=method,
-                              max_shift_px=max(shift / sc, 1.0))
-            coarse = replace(r, x=(r.x + 0.5) * sx - 0.5, y=(r.y + 0.5) * sy - 0.5)
-            if coarse.ok and math.hypot(coarse.x - x, coarse.y - y) <= shift:
-                fine = refine_center(gray, coarse.x, coarse.y, radius, method=method, max_shift_px=max(2.0, 0.5 * sc))
-                if fine.ok:
-                    return fine
-    return refine_center(gray, x, y, radius, method=method, max_shift_px=shift)
 
 
 def _refine_reduced(img: np.ndarray, k: int, x: float, y: float, radius: float, method: str, shift: float):

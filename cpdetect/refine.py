@@ -37,6 +37,12 @@ Methods (``method=``):
 The window is always derived from the marker's apparent radius (``radius_px``; a fraction of it,
 clamped), never fixed: a fixed window either straddles the marker boundary on small markers or
 wastes signal on large ones.
+
+A seed that may be tens of pixels off (a detector's coarse pyramid level on a large marker) goes
+through :func:`refine_center_coarse_to_fine`: the same refinement on an area-reduced window first,
+then at full resolution within half a reduced pixel (on the 45 MP bench image a 450 px marker from
+a seed 60 px off: 150-270 ms -> 10-50 ms, and a symmetry fit of sigma 0.010 px where the wide window
+fell back on the Hough lines at 0.058).
 """
 from __future__ import annotations
 
@@ -503,6 +509,47 @@ def refine_center(gray: np.ndarray, x0: float, y0: float, radius_px: float, meth
     return min(others, key=lambda r: r.sigma_px)
 
 
+# refine_center_coarse_to_fine settles the centre on a reduced copy first when the seed may be
+# further than this from it (px): a full-resolution window that wide costs tens of times a narrow one
+COARSE_SHIFT_PX = 16.0
+
+
+def refine_center_coarse_to_fine(gray: np.ndarray, x0: float, y0: float, radius_px: float, method: str = "auto",
+                                 *, max_shift_px: float) -> RefineResult:
+    """:func:`refine_center` for a seed up to ``max_shift_px`` off, which can be tens of pixels on a
+    large marker (a detector's coarse pyramid level, a projected 3D point). Where the shift exceeds
+    COARSE_SHIFT_PX, the window around the seed is first area-reduced by the largest power of two
+    that leaves the shift 8 and the radius 8 reduced pixels, refined there, then refined at full
+    resolution within half a reduced pixel (at least 2 px); where either step fails, the direct
+    refinement over the whole shift. Same conventions and result as :func:`refine_center`."""
+    import cv2
+
+    gray = _check_inputs(gray, x0, y0, radius_px)
+    shift = float(max_shift_px)
+    f = 1
+    while 2 * f <= shift / 8.0 and radius_px / (2 * f) >= 8.0:
+        f *= 2
+    if shift > COARSE_SHIFT_PX and f > 1:
+        # a window whose corner and size are multiples of f: reduced pixel j covers full pixels
+        # [x0c + j f, x0c + (j + 1) f) exactly, at any position in the image
+        half = shift + default_window(radius_px / f) * f + 4 * f
+        h, w = gray.shape
+        xa, ya = max(0, int(x0 - half) // f * f), max(0, int(y0 - half) // f * f)
+        xb, yb = min(w, int(x0 + half) + 1), min(h, int(y0 + half) + 1)
+        xb, yb = xa + (xb - xa) // f * f, ya + (yb - ya) // f * f
+        if xb - xa >= 8 * f and yb - ya >= 8 * f:
+            crop = cv2.resize(np.asarray(gray[ya:yb, xa:xb], np.float32), ((xb - xa) // f, (yb - ya) // f),
+                              interpolation=cv2.INTER_AREA)
+            c = refine_center(crop, (x0 - xa + 0.5) / f - 0.5, (y0 - ya + 0.5) / f - 0.5, radius_px / f,
+                              method=method, max_shift_px=max(shift / f, 1.0))
+            cx, cy = xa + (c.x + 0.5) * f - 0.5, ya + (c.y + 0.5) * f - 0.5
+            if c.ok and math.hypot(cx - x0, cy - y0) <= shift:
+                fine = refine_center(gray, cx, cy, radius_px, method=method, max_shift_px=max(2.0, 0.5 * f))
+                if fine.ok:
+                    return fine
+    return refine_center(gray, x0, y0, radius_px, method=method, max_shift_px=shift)
+
+
 def refine_center_painted(gray: np.ndarray, paint, x0: float, y0: float, radius_px: float, method: str = "auto",
                           retry_sigma_px: float = PAINT_RETRY_SIGMA_PX, **kw) -> RefineResult:
     """:func:`refine_center` on ``gray`` and, where that fails or is uncertain (sigma over
@@ -518,5 +565,5 @@ def refine_center_painted(gray: np.ndarray, paint, x0: float, y0: float, radius_
     return alt if alt.ok and (not res.ok or alt.sigma_px < res.sigma_px) else res
 
 
-__all__ = ["RefineResult", "refine_center", "refine_center_painted", "refine_saddle", "refine_symmetry", "refine_hough",
-           "default_window", "METHODS"]
+__all__ = ["RefineResult", "refine_center", "refine_center_coarse_to_fine", "refine_center_painted", "refine_saddle",
+           "refine_symmetry", "refine_hough", "default_window", "METHODS"]

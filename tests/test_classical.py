@@ -562,31 +562,3 @@ def test_marker_on_a_background_dark_beside_one_sector_and_bright_beside_the_nex
     # not held against it as inverted surroundings (counted over all rays: 0.39, score 0.88 for the circle)
     assert near[0].score > 0.97
 
-
-@pytest.mark.parametrize("marker_type", MARKER_TYPES)
-def test_a_far_seed_on_a_large_marker_settles_on_a_reduced_level_first(marker_type):
-    from cpdetect.classical import COARSE_SHIFT_PX, _refine_coarse_to_fine, _search_levels
-    from cpdetect.refine import refine_center
-
-    # odd sizes, marker far from the origin: halving 1387 rows is not exactly 2x, and a coarse level
-    # read as if it were puts the centre 3.4 px off
-    img, c, r, _ = tilted_scene(marker_type, (1403.3, 1106.6), 260.0, 20.0, 0.4, 0.3, shape=(1387, 1803), seed=5)
-    _, _, levels = _search_levels(img, 2)
-    assert levels.items[3][1].shape == (173, 225)
-    seed = (c[0] + 25.0, c[1] - 18.0)  # a candidate from a coarse level sits this far off
-    shift = 0.3 * r
-    assert shift > COARSE_SHIFT_PX
-    two_step = _refine_coarse_to_fine(img, levels, seed[0], seed[1], r, "auto", shift)
-    assert two_step.ok and np.hypot(two_step.x - c[0], two_step.y - c[1]) < 0.02
-    assert 0.0 < two_step.sigma_px < 0.05
-    # from the far seed at full resolution directly, the symmetry fit does not hold (the Hough lines
-    # give a looser centre, or a wrong one is taken)
-    direct = refine_center(img, seed[0], seed[1], r, max_shift_px=shift)
-    assert direct.sigma_px > 2.0 * two_step.sigma_px
-    # small shifts (and no levels) are the direct refinement itself
-    near = (c[0] + 1.2, c[1] - 0.7)
-    a = _refine_coarse_to_fine(img, levels, near[0], near[1], r, "auto", 8.0)
-    b = refine_center(img, near[0], near[1], r, max_shift_px=8.0)
-    assert (a.x, a.y, a.sigma_px) == (b.x, b.y, b.sigma_px)
-    a = _refine_coarse_to_fine(img, None, seed[0], seed[1], r, "auto", shift)
-    assert (a.x, a.y, a.sigma_px) == (direct.x, direct.y, direct.sigma_px)

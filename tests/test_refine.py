@@ -189,3 +189,38 @@ def test_painted_marker_refined_on_its_paint_when_gray_has_no_contrast():
     g, c, r = render((80.4, 79.7), 30.0, angle=0.3)
     res = refine_center_painted(g, paint, 81.0, 79.0, r)
     assert res.ok and calls == [] and np.hypot(res.x - c[0], res.y - c[1]) < 0.01
+
+
+@pytest.mark.parametrize("marker_type", ["square", "circle", "diagonal"])
+def test_a_far_seed_on_a_large_marker_settles_on_a_reduced_window_first(marker_type):
+    from cpdetect.refine import COARSE_SHIFT_PX, refine_center_coarse_to_fine
+
+    # odd sizes, marker far from the origin: the reduced window's mapping must be exact anywhere
+    img, c, r = render((1403.3, 1106.6), 260.0, angle=0.3, marker_type=marker_type, shape=(1387, 1803),
+                       tilt_deg=20.0, tilt_axis=0.4, noise=2.0, rng=np.random.default_rng(5))
+    seed = (c[0] + 25.0, c[1] - 18.0)  # a candidate from a coarse pyramid level sits this far off
+    shift = 0.3 * r
+    assert shift > COARSE_SHIFT_PX
+    two_step = refine_center_coarse_to_fine(img, seed[0], seed[1], r, max_shift_px=shift)
+    assert two_step.ok and np.hypot(two_step.x - c[0], two_step.y - c[1]) < 0.02
+    assert 0.0 < two_step.sigma_px < 0.05
+    # from the far seed at full resolution directly, the symmetry fit does not hold (the Hough lines
+    # give a looser centre, or a wrong one is taken)
+    direct = refine_center(img, seed[0], seed[1], r, max_shift_px=shift)
+    assert direct.sigma_px > 2.0 * two_step.sigma_px
+    # a small shift is the direct refinement itself
+    near = (c[0] + 1.2, c[1] - 0.7)
+    a = refine_center_coarse_to_fine(img, near[0], near[1], r, max_shift_px=8.0)
+    b = refine_center(img, near[0], near[1], r, max_shift_px=8.0)
+    assert (a.x, a.y, a.sigma_px) == (b.x, b.y, b.sigma_px)
+
+
+def test_coarse_to_fine_at_the_image_corner_and_on_no_marker():
+    from cpdetect.refine import refine_center_coarse_to_fine
+
+    img, c, r = render((60.4, 70.2), 120.0, angle=0.2, shape=(400, 500))
+    res = refine_center_coarse_to_fine(img, c[0] + 9.0, c[1] + 7.0, r, max_shift_px=40.0)
+    assert res.ok and np.hypot(res.x - c[0], res.y - c[1]) < 0.02
+    flat = np.full((400, 500), 120.0, np.float32)
+    res = refine_center_coarse_to_fine(flat, 250.0, 200.0, 120.0, max_shift_px=40.0)
+    assert not res.ok and (res.x, res.y) == (250.0, 200.0)
