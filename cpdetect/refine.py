@@ -551,17 +551,20 @@ def refine_center_coarse_to_fine(gray: np.ndarray, x0: float, y0: float, radius_
 
 
 def refine_center_painted(gray: np.ndarray, paint, x0: float, y0: float, radius_px: float, method: str = "auto",
-                          retry_sigma_px: float = PAINT_RETRY_SIGMA_PX, **kw) -> RefineResult:
-    """:func:`refine_center` on ``gray`` and, where that fails or is uncertain (sigma over
-    ``retry_sigma_px``), also on the *paint* image of the same photo (the max of its channels, see
-    :func:`cpdetect.imageio.paint_image`); the fit with the smaller sigma wins. A marker painted red
-    on black can have almost no luminance contrast while its paint stands out. ``paint``: an array
-    of the gray image's size, or a callable returning one (called only when needed), or None."""
-    res = refine_center(gray, x0, y0, radius_px, method=method, **kw)
+                          retry_sigma_px: float = PAINT_RETRY_SIGMA_PX, max_shift_px: float | None = None
+                          ) -> RefineResult:
+    """:func:`refine_center_coarse_to_fine` on ``gray`` and, where that fails or is uncertain (sigma
+    over ``retry_sigma_px``), also on the *paint* image of the same photo (the max of its channels,
+    see :func:`cpdetect.imageio.paint_image`); the fit with the smaller sigma wins. A marker painted
+    red on black can have almost no luminance contrast while its paint stands out. ``paint``: an
+    array of the gray image's size, or a callable returning one (called only when needed), or None.
+    ``max_shift_px``: as in :func:`refine_center` (default max(2, 0.35 radius))."""
+    shift = float(max_shift_px) if max_shift_px is not None else max(2.0, 0.35 * float(radius_px))
+    res = refine_center_coarse_to_fine(gray, x0, y0, radius_px, method=method, max_shift_px=shift)
     if paint is None or (res.ok and res.sigma_px <= retry_sigma_px):
         return res
     img = paint() if callable(paint) else paint
-    alt = refine_center(img, x0, y0, radius_px, method=method, **kw)
+    alt = refine_center_coarse_to_fine(img, x0, y0, radius_px, method=method, max_shift_px=shift)
     return alt if alt.ok and (not res.ok or alt.sigma_px < res.sigma_px) else res
 
 

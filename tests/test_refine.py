@@ -208,6 +208,11 @@ def test_a_far_seed_on_a_large_marker_settles_on_a_reduced_window_first(marker_t
     # give a looser centre, or a wrong one is taken)
     direct = refine_center(img, seed[0], seed[1], r, max_shift_px=shift)
     assert direct.sigma_px > 2.0 * two_step.sigma_px
+    # the 3D back end's per-image refinement takes the same path
+    from cpdetect.refine import refine_center_painted
+
+    painted = refine_center_painted(img, None, seed[0], seed[1], r, max_shift_px=shift)
+    assert (painted.x, painted.y, painted.sigma_px) == (two_step.x, two_step.y, two_step.sigma_px)
     # a small shift is the direct refinement itself
     near = (c[0] + 1.2, c[1] - 0.7)
     a = refine_center_coarse_to_fine(img, near[0], near[1], r, max_shift_px=8.0)
