@@ -3,9 +3,10 @@
 On a generated set with *train*-split backgrounds (the set the refinement's window choice was made
 on; ``--data`` reuses one), the classical detector runs on every image that has a covered marker or
 one whose centre lies within the fitting window (+4 px) of the border, and every call it makes to
-:func:`cpdetect.refine.refine_center` is recorded with its seed and allowed shift. Each recorded call
-near a true marker is then replayed, from the same seed, by
-- ``auto`` (the default: symmetry on the full window, and on smaller ones when that is uncertain);
+:func:`cpdetect.refine.refine_center_coarse_to_fine` (its gray centre) is recorded with its seed and
+allowed shift. Each recorded call near a true marker is then replayed, from the same seed, by
+- ``auto`` (what the detector runs: the default method, symmetry on the full window and on smaller
+  ones when that is uncertain, on a reduced window first where the shift exceeds 16 px);
 - ``symmetry_full_window`` (the point-symmetry fit on the full window only);
 - ``cv2.cornerSubPix`` with the window adapted to the marker (peer);
 and the error against the true centre is summarised for the covered markers and for the others.
@@ -46,21 +47,21 @@ def hard(marker, width: int, height: int) -> bool:
 
 
 def record_calls(ds) -> list[dict]:
-    """The detector's refine_center calls near true markers on the images with hard markers."""
+    """The detector's centre refinements near true markers on the images with hard markers."""
     import cv2
 
     import cpdetect.classical as classical
 
     calls: list[tuple] = []
-    real = classical.refine_center
+    real = classical.refine_center_coarse_to_fine
 
-    def spy(gray, x, y, radius, method="auto", **kw):
-        calls.append((x, y, radius, kw.get("max_shift_px")))
-        return real(gray, x, y, radius, method=method, **kw)
+    def spy(gray, x, y, radius, method="auto", *, max_shift_px):
+        calls.append((x, y, radius, max_shift_px))
+        return real(gray, x, y, radius, method=method, max_shift_px=max_shift_px)
 
     det = classical.ClassicalDetector()
     rows = []
-    classical.refine_center = spy
+    classical.refine_center_coarse_to_fine = spy
     try:
         for item in ds.images:
             gray = cv2.imread(str(ds.image_path(item)), cv2.IMREAD_GRAYSCALE)
@@ -75,14 +76,14 @@ def record_calls(ds) -> list[dict]:
                         rows.append({"file": item.file, "x": x, "y": y, "radius": radius, "max_shift": shift,
                                      "tx": m.x, "ty": m.y, "covered": m.extra.get("occluded_frac", 0.0) > 0})
     finally:
-        classical.refine_center = real
+        classical.refine_center_coarse_to_fine = real
     return rows
 
 
 def replay(ds, rows: list[dict]) -> dict:
     import cv2
 
-    from cpdetect.refine import default_window, refine_center
+    from cpdetect.refine import default_window, refine_center, refine_center_coarse_to_fine
 
     crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
     errors = {k: {"covered": [], "other": []} for k in ("auto", "symmetry_full_window", "cornerSubPix_adaptive")}
@@ -92,8 +93,11 @@ def replay(ds, rows: list[dict]) -> dict:
             images[r["file"]] = cv2.imread(str(ds.root / r["file"]), cv2.IMREAD_GRAYSCALE)
         g = images[r["file"]]
         group = "covered" if r["covered"] else "other"
-        for key, method in (("auto", "auto"), ("symmetry_full_window", "symmetry")):
-            res = refine_center(g, r["x"], r["y"], r["radius"], method=method, max_shift_px=r["max_shift"])
+        for key, fit in (("auto", refine_center_coarse_to_fine), ("symmetry_full_window", None)):
+            if fit is None:
+                res = refine_center(g, r["x"], r["y"], r["radius"], method="symmetry", max_shift_px=r["max_shift"])
+            else:
+                res = fit(g, r["x"], r["y"], r["radius"], max_shift_px=r["max_shift"])
             errors[key][group].append(math.hypot(res.x - r["tx"], res.y - r["ty"]) if res.ok else math.nan)
         win = int(round(default_window(r["radius"])))
         p = cv2.cornerSubPix(g, np.array([[[r["x"], r["y"]]]], np.float32), (win, win), (-1, -1), crit)
