@@ -3,8 +3,11 @@
 Pipeline for one image:
 
 1. **Search image.** The gray image reduced by k in {1, 2, 4, 8} (area averaging) so that it has at
-   most ``search_megapixels``; for a path, the full-resolution gray image is decoded once (it is
-   needed for refinement anyway) and the search copy is made with ``cv2.resize(INTER_AREA)``.
+   most ``search_megapixels``. For a JPEG file reduced by k > 1, libjpeg decodes the search image
+   directly at 1/k (in colour, for the colour pass) and the candidates are found on it while the
+   full-resolution gray image, needed from verification on, decodes in a second thread (45 MP:
+   8-15 % less time; on 100 generated 12 MP images the same 186 markers found, 16 false instead
+   of 17, 90 of 100 images with identical detections).
 2. **Candidates** (:mod:`cpdetect.xcorner`): multi-scale Hessian-determinant X-corner response on the
    search image pyramid, local maxima above a contrast threshold; a vectorised prefilter on a few
    rings around each (four steady sectors of plausible levels), then a logistic candidate score
@@ -1279,26 +1282,34 @@ class ClassicalDetector:
     def detect(self, image: Any) -> DetectionResult:
         t0 = time.perf_counter()
         if isinstance(image, (str, os.PathLike)):
-            gray, paint = self._read(image)
+            res = self._detect_file(image)
         else:
-            gray, paint = self._from_array(image)
-        res = self._detect_gray(gray, paint)
+            res = self._detect_gray(*self._from_array(image))
         res.seconds = time.perf_counter() - t0
         return res
 
-    def _read(self, path) -> tuple[np.ndarray, np.ndarray | None]:
-        """Gray image (full resolution) and paint image (search resolution, or None) of a file."""
-        from .imageio import probe_image, read_gray_and_reduced_colour, read_image
+    def _detect_file(self, path) -> DetectionResult:
+        from .imageio import probe_image, read_image, read_reduced_colour_then_gray
 
         if not self.settings.colour_pass:
-            return read_image(path, gray=True), None
+            return self._detect_gray(read_image(path, gray=True), None)
         info = probe_image(path)
         k = self._search_factor(info.width, info.height)
-        if info.format == "jpeg" and k > 1:
-            # the colour pass searches at reduced size only, where a JPEG decodes directly
-            gray, small = read_gray_and_reduced_colour(path, k)
-            return gray, paint_image(small)
-        return self._from_array(read_image(path))
+        if info.format != "jpeg" or k == 1:
+            return self._detect_gray(*self._from_array(read_image(path)))
+        # a JPEG searched at reduced size decodes at that size directly (libjpeg's DCT scaling: within
+        # 0.1 grey level of the area-reduced full image), in colour for the colour pass; the search
+        # runs on it while the full-resolution gray image, needed from verification on, decodes
+        import cv2
+
+        small, full = read_reduced_colour_then_gray(path, k)
+        try:
+            searched = self._search(cv2.cvtColor(small, cv2.COLOR_BGR2GRAY))
+            paint = paint_image(small)
+        except BaseException:
+            full.exception()
+            raise
+        return self._detect_gray(full.result(), paint, searched)
 
     def _from_array(self, image: Any) -> tuple[np.ndarray, np.ndarray | None]:
         a = np.asarray(image)
@@ -1316,17 +1327,28 @@ class ClassicalDetector:
                 return k
         return 8
 
-    def _detect_gray(self, gray: np.ndarray, paint: np.ndarray | None = None) -> DetectionResult:
+    def _search(self, search: np.ndarray) -> tuple:
+        """The search image, its pyramid, the X-corner maps of its levels and the candidates."""
+        s = self.settings
+        pyramid = build_pyramid(search)
+        gray_c: list[np.ndarray] = []
+        cands = find_candidates(pyramid, 0.6 * s.min_contrast, s.max_candidates_per_level, maps=gray_c)
+        return search, pyramid, gray_c, cands
+
+    def _detect_gray(self, gray: np.ndarray, paint: np.ndarray | None = None,
+                     searched: tuple | None = None) -> DetectionResult:
         """Detect on ``gray`` (full resolution); ``paint``: the max-of-channels image of a colour
-        photo at search resolution (see :func:`paint_image`) for the colour pass, or None."""
+        photo at search resolution (see :func:`paint_image`) for the colour pass, or None;
+        ``searched``: :meth:`_search` of the search image when it was made otherwise (else from
+        ``gray`` area-reduced)."""
         import cv2
 
         s = self.settings
         h, w = gray.shape
         k = self._search_factor(w, h)
-        search, pyramid, levels = _search_levels(gray, k)
-        gray_c: list[np.ndarray] = []
-        cands = find_candidates(pyramid, 0.6 * s.min_contrast, s.max_candidates_per_level, maps=gray_c)
+        search, pyramid, gray_c, cands = searched or self._search(_reduced(gray, k))
+        # the full image is sampled in place (uint8): no full-size float copy
+        levels = _Levels(gray if k > 1 else None, k, pyramid)
         accepted: list[tuple[_Verified, Any]] = []
         scan = _Scan(gray, k, s, accepted)
         with ThreadPoolExecutor(1) as pool:

@@ -13,10 +13,14 @@ import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .errors import InputError
+
+if TYPE_CHECKING:
+    from concurrent.futures import Future
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 MAX_PIXELS = 400_000_000  # 20000 x 20000; larger is refused before decoding
@@ -151,24 +155,49 @@ def read_image(path: str | os.PathLike, gray: bool = False, reduce: int = 1) -> 
     return img
 
 
-def read_gray_and_reduced_colour(path: str | os.PathLike, reduce: int) -> tuple[np.ndarray, np.ndarray]:
-    """The full-size gray image and the BGR image at 1/``reduce`` size of one JPEG, from one read of
-    the file; the two decodes run at once (OpenCV releases the GIL), so the small one costs little
-    time. Other formats: as :func:`read_image` gives them."""
-    from concurrent.futures import ThreadPoolExecutor
+def read_reduced_colour_then_gray(path: str | os.PathLike, reduce: int) -> tuple[np.ndarray, "Future[np.ndarray]"]:
+    """The BGR image at 1/``reduce`` size of one JPEG, and a future of its full-size gray image,
+    decoded meanwhile in a second thread, so that a caller's work on the small image overlaps the
+    big decode. The future raises :class:`InputError` for a damaged file (its warnings are
+    captured as :func:`read_image` captures them, for both decodes); wait for it (``result()`` or
+    ``exception()``) before anything else writes to standard error. Other formats: the future
+    holds the gray image already."""
+    from concurrent.futures import Future, ThreadPoolExecutor
 
     _check_reduce(reduce)
     p = Path(path)
     data, fmt = _checked_bytes(p)
     if fmt != "jpeg":
-        return _decode_other(data, fmt, p, True, 1), _decode_other(data, fmt, p, False, reduce)
-    with _captured_stderr() as printed:
-        with ThreadPoolExecutor(1) as pool:
-            small = pool.submit(_decode_jpeg, data, p, False, reduce)
-            gray = _decode_jpeg(data, p, True, 1)
-            colour = small.result()
-    _raise_if_damaged(printed, p)
-    return gray, colour
+        done: Future = Future()
+        done.set_result(_decode_other(data, fmt, p, True, 1))
+        return _decode_other(data, fmt, p, False, reduce), done
+    capturing, small_done = threading.Event(), threading.Event()
+
+    def full() -> np.ndarray:
+        try:
+            with _captured_stderr() as printed:
+                capturing.set()
+                try:
+                    gray = _decode_jpeg(data, p, True, 1)
+                finally:
+                    small_done.wait()  # the small decode's warnings land in the same capture
+        finally:
+            capturing.set()
+        _raise_if_damaged(printed, p)
+        return gray
+
+    pool = ThreadPoolExecutor(1)
+    future = pool.submit(full)
+    pool.shutdown(wait=False)
+    capturing.wait()
+    try:
+        small = _decode_jpeg(data, p, False, reduce)
+    except BaseException:
+        small_done.set()
+        future.exception()  # the capture ends before the error is reported
+        raise
+    small_done.set()
+    return small, future
 
 
 def _check_reduce(reduce: int) -> None:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from cpdetect.errors import InputError
-from cpdetect.imageio import list_images, probe_image, read_gray_and_reduced_colour, read_image
+from cpdetect.imageio import list_images, probe_image, read_image, read_reduced_colour_then_gray
 
 
 @pytest.fixture()
@@ -60,7 +60,7 @@ def test_jpeg_cut_short_with_an_end_marker_is_refused(tmp_path, capfd):
     p = tmp_path / "cut.jpg"
     p.write_bytes(data[: len(data) // 2] + b"\xff\xd9")
     for call in (lambda: read_image(p), lambda: read_image(p, gray=True, reduce=4),
-                 lambda: read_gray_and_reduced_colour(p, 2)):
+                 lambda: read_reduced_colour_then_gray(p, 2)[1].result()):
         with pytest.raises(InputError) as e:
             call()
         assert "damaged JPEG data" in str(e.value) and str(p) in str(e.value) and "\n" not in str(e.value)
@@ -74,9 +74,27 @@ def test_jpeg_with_junk_before_its_end_marker_still_reads(tmp_path, capfd):
     p = tmp_path / "junk.jpg"
     p.write_bytes(data[:-2] + bytes(range(1, 41)) + data[-2:])
     assert np.array_equal(read_image(p), cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR))
-    gray, small = read_gray_and_reduced_colour(p, 2)
-    assert gray.shape == (240, 320) and small.shape == (120, 160, 3)
+    small, gray = read_reduced_colour_then_gray(p, 2)
+    assert gray.result().shape == (240, 320) and small.shape == (120, 160, 3)
     assert "extraneous bytes" in capfd.readouterr().err
+
+
+def test_reduced_colour_then_gray_is_both_decodes_and_refuses_what_cannot_decode(tmp_path, capfd):
+    data = _noisy_jpeg_bytes()
+    p = tmp_path / "ok.jpg"
+    p.write_bytes(data)
+    small, gray = read_reduced_colour_then_gray(p, 4)
+    assert np.array_equal(small, read_image(p, reduce=4)) and np.array_equal(gray.result(), read_image(p, gray=True))
+    bad = tmp_path / "garbage.jpg"
+    bad.write_bytes(data[:20] + bytes(range(256)) * 4 + b"\xff\xd9")
+    with pytest.raises(InputError) as e:
+        read_reduced_colour_then_gray(bad, 2)
+    assert "corrupt JPEG" in str(e.value) and str(bad) in str(e.value)
+    png = tmp_path / "flat.png"
+    cv2.imwrite(str(png), np.full((8, 12, 3), 77, np.uint8))
+    small, gray = read_reduced_colour_then_gray(png, 2)
+    assert small.shape == (4, 6, 3) and gray.result().shape == (8, 12)
+    assert "Corrupt" not in capfd.readouterr().err
 
 
 def test_png_with_jpg_name_is_read_by_content(tmp_path):
