@@ -515,9 +515,10 @@ COARSE_SHIFT_PX = 16.0
 
 
 def refine_center_coarse_to_fine(gray: np.ndarray, x0: float, y0: float, radius_px: float, method: str = "auto",
-                                 *, max_shift_px: float) -> RefineResult:
-    """:func:`refine_center` for a seed up to ``max_shift_px`` off, which can be tens of pixels on a
-    large marker (a detector's coarse pyramid level, a projected 3D point). Where the shift exceeds
+                                 *, max_shift_px: float | None = None) -> RefineResult:
+    """:func:`refine_center` for a seed up to ``max_shift_px`` off (default, as there,
+    max(2, 0.35 radius)), which can be tens of pixels on a large marker (a detector's coarse
+    pyramid level, a projected 3D point). Where the shift exceeds
     COARSE_SHIFT_PX, the window around the seed is first area-reduced by the largest power of two
     that leaves the shift 8 and the radius 8 reduced pixels, refined there, then refined at full
     resolution within half a reduced pixel (at least 2 px); where either step fails, the direct
@@ -525,7 +526,7 @@ def refine_center_coarse_to_fine(gray: np.ndarray, x0: float, y0: float, radius_
     import cv2
 
     gray = _check_inputs(gray, x0, y0, radius_px)
-    shift = float(max_shift_px)
+    shift = float(max_shift_px) if max_shift_px is not None else max(2.0, 0.35 * radius_px)
     f = 1
     while 2 * f <= shift / 8.0 and radius_px / (2 * f) >= 8.0:
         f *= 2
@@ -559,12 +560,11 @@ def refine_center_painted(gray: np.ndarray, paint, x0: float, y0: float, radius_
     red on black can have almost no luminance contrast while its paint stands out. ``paint``: an
     array of the gray image's size, or a callable returning one (called only when needed), or None.
     ``max_shift_px``: as in :func:`refine_center` (default max(2, 0.35 radius))."""
-    shift = float(max_shift_px) if max_shift_px is not None else max(2.0, 0.35 * float(radius_px))
-    res = refine_center_coarse_to_fine(gray, x0, y0, radius_px, method=method, max_shift_px=shift)
+    res = refine_center_coarse_to_fine(gray, x0, y0, radius_px, method=method, max_shift_px=max_shift_px)
     if paint is None or (res.ok and res.sigma_px <= retry_sigma_px):
         return res
     img = paint() if callable(paint) else paint
-    alt = refine_center_coarse_to_fine(img, x0, y0, radius_px, method=method, max_shift_px=shift)
+    alt = refine_center_coarse_to_fine(img, x0, y0, radius_px, method=method, max_shift_px=max_shift_px)
     return alt if alt.ok and (not res.ok or alt.sigma_px < res.sigma_px) else res
 
 

@@ -8,8 +8,8 @@ Steps for one image (uint8 gray or BGR; a path is read as gray):
 3. centre: seeds on the full-resolution image (the probability-weighted centroid and the strongest
    X-corners on the component, :func:`cpdetect.xcorner.xcorner_seeds`), each refined with
    :func:`cpdetect.refine.refine_center_coarse_to_fine` (``refine``; "none" skips it); the first
-   refined centre where the classical marker model fits (:func:`cpdetect.classical.verify_marker_at`) wins, else the
-   centroid's refinement when sharp. On the test split this took instance recall from 0.795 to 0.850
+   refined centre where the classical marker model fits (:func:`cpdetect.classical.verify_marker_at`)
+   wins, else the centroid's refinement when sharp. On the test split this took instance recall from 0.795 to 0.850
    and the mean centre error from 0.121 to 0.075 px (the centroid is a poor seed under perspective,
    occlusion and at the image border). With ``classical_seeds`` the classical detector's markers on
    the component are tried first, and a blob whose centre one of them confirms is kept (a fresh
@@ -99,8 +99,8 @@ class HMASettings:
     detector's cut.
     classical_seeds: also run the classical detector on the image (13-32 % more time on 640x480
     sets); its markers that lie on a blob are tried first among the X-corner seeds, and a blob whose
-    centre one of them confirms is kept whatever the instance model says. The blobs stay the network's: a
-    classical marker where the network sees none adds nothing. (The classical type for centres
+    centre one of them confirms is kept whatever the instance model says. The blobs stay the
+    network's: a classical marker where the network sees none adds nothing. (The classical type for centres
     the marker model does not verify instead of the shape's: type accuracy 0.968 -> 0.966 on the
     train-split dev set, so not used.)
     One thread per detector because cpdetect parallelises over images (``--workers``): torch's
@@ -481,7 +481,7 @@ class HMADetector:
         for i, (sx, sy) in enumerate(seeds):
             # a blob's centroid can sit tens of pixels off a large marker's centre: the coarse step
             # spares a full-resolution window that wide
-            r = refine_center_coarse_to_fine(gray, sx, sy, radius, s.refine, max_shift_px=max(2.0, 0.35 * radius))
+            r = refine_center_coarse_to_fine(gray, sx, sy, radius, s.refine)
             if not (r.ok and r.sigma_px <= loosest):
                 continue
             sigma = max(float(r.sigma_px), 1e-3)
