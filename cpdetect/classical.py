@@ -691,17 +691,18 @@ class _Verifier:
         # once the rings reach well past the end of the four-sector core (bounded work per candidate)
         r_hi = max(self.max_radius * 1.7, r_start * 2)
         n_all = int(math.ceil(math.log(r_hi / r_start) / math.log(1.08))) + 1
-        chunks, end, ref, n = [], 0, None, 0
+        chunks, stats, end, ref, n = [], [], 0, None, 0
         core_open, core_cut = True, False
         while n < n_all:
             radii_c = r_start * 1.08 ** np.arange(n, min(n + 10, n_all))
             chunks.append(self.polar(x, y, radii_c, radii_c * (TWO_PI / self.N_THETA)))
+            stats.append(harmonics(chunks[-1]))  # per ring: only the new chunk's rings need them
             P = np.concatenate(chunks)
             n = len(P)
             if n == len(chunks[0]) and np.isnan(P[:3]).any():
                 return "too close to the border"
             valid_ring = ~np.isnan(P).any(1)
-            mean, std, q, phi = harmonics(P)
+            mean, std, q, phi = (np.concatenate(a) for a in zip(*stats))
             if ref is None:
                 if q[0] < 0.55:
                     return "no four-sector pattern"
