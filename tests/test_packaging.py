@@ -40,7 +40,10 @@ def test_installed_package_has_its_data_and_runs_from_elsewhere(installed):
             "p = r.files('cpdetect.data') / 'backgrounds'; "
             "n = sum(1 for f in p.iterdir() if f.name.endswith('.jpg')); "
             "assert (p / 'MANIFEST.tsv').is_file(); "
-            "assert 'site-packages' in cpdetect.__file__, cpdetect.__file__; print(n)")
+            "assert 'site-packages' in cpdetect.__file__, cpdetect.__file__; "
+            "from cpdetect.classical import score_model; "
+            "assert 'site-packages' in str(r.files('cpdetect.data')); assert score_model().feature.shape[0] >= 10; "
+            "print(n)")
     out = subprocess.run([str(venv / "bin" / "python"), "-c", code], cwd=elsewhere, check=True,
                          capture_output=True, text=True).stdout
     assert int(out) >= 40

@@ -1,0 +1,133 @@
+"""Gradient-boosted decision trees for binary decisions, evaluated with NumPy from a JSON file.
+
+A fitted scikit-learn ``HistGradientBoostingClassifier`` is written out by :func:`export_tree_ensemble`
+(a fitting script's job) and read back by :func:`load_tree_ensemble` at run time, so the package needs
+no pickle (which ties a model to one scikit-learn version) and no scikit-learn call per decision.
+
+File layout (``format`` "cpdetect.tree-ensemble/1"): ``features`` (names, in the order of the input
+vector), ``baseline`` (log-odds before the trees), ``trees``: per tree, node arrays ``feature``,
+``threshold``, ``left``, ``right``, ``missing_left`` (a NaN feature goes left), ``leaf`` and ``value``
+(the leaf's log-odds contribution). A sample goes left where ``x[feature] <= threshold``, as in
+scikit-learn. Anything else in the file (how it was fitted) is kept in :attr:`TreeEnsemble.info`.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+FORMAT = "cpdetect.tree-ensemble/1"
+
+
+@dataclass(frozen=True)
+class TreeEnsemble:
+    """Trees padded to one node count: arrays (n_trees, n_nodes); ``depth`` the longest root-to-leaf path."""
+
+    features: tuple[str, ...]
+    baseline: float
+    feature: np.ndarray
+    threshold: np.ndarray
+    left: np.ndarray
+    right: np.ndarray
+    missing_left: np.ndarray
+    leaf: np.ndarray
+    value: np.ndarray
+    depth: int
+    info: dict = field(default_factory=dict)
+
+    def log_odds(self, x: np.ndarray) -> np.ndarray:
+        """Log-odds for samples ``x`` (n, n_features) or one sample (n_features,)."""
+        x = np.asarray(x, float)
+        one = x.ndim == 1
+        X = x.reshape(1, -1) if one else x
+        if X.shape[1] != len(self.features):
+            raise ValueError(f"expected {len(self.features)} features, got {X.shape[1]}")
+        n_trees = self.feature.shape[0]
+        trees = np.arange(n_trees)[None, :]
+        rows = np.arange(len(X))[:, None]
+        node = np.zeros((len(X), n_trees), np.intp)
+        for _ in range(self.depth):
+            v = X[rows, self.feature[trees, node]]
+            go_left = np.where(np.isnan(v), self.missing_left[trees, node], v <= self.threshold[trees, node])
+            node = np.where(self.leaf[trees, node], node,
+                            np.where(go_left, self.left[trees, node], self.right[trees, node]))
+        out = self.baseline + self.value[trees, node].sum(1)
+        return out[0] if one else out
+
+    def probability(self, x: np.ndarray) -> np.ndarray | float:
+        """P(positive class) in [0, 1] for ``x`` as in :meth:`log_odds`."""
+        z = self.log_odds(x)
+        if np.ndim(z) == 0:
+            return 1.0 / (1.0 + math.exp(-min(max(float(z), -700.0), 700.0)))
+        return 1.0 / (1.0 + np.exp(-np.clip(z, -700.0, 700.0)))
+
+
+def _tree_depth(left: np.ndarray, right: np.ndarray, leaf: np.ndarray) -> int:
+    """Longest root-to-leaf path; ValueError when a path is longer than the node count (a cycle)."""
+    depth, stack = 0, [(0, 0)]
+    while stack:
+        i, d = stack.pop()
+        if d > len(leaf):
+            raise ValueError("a tree's nodes form a cycle")
+        if leaf[i]:
+            depth = max(depth, d)
+        else:
+            stack += [(int(left[i]), d + 1), (int(right[i]), d + 1)]
+    return depth
+
+
+def tree_ensemble_from_dict(doc: dict, source: str = "tree ensemble") -> TreeEnsemble:
+    """A :class:`TreeEnsemble` from the parsed JSON document; ValueError naming ``source`` if malformed."""
+    if doc.get("format") != FORMAT:
+        raise ValueError(f"{source}: not a {FORMAT} file")
+    try:
+        feats = tuple(str(f) for f in doc["features"])
+        trees = doc["trees"]
+        n = max(len(t["feature"]) for t in trees)
+        pad = lambda key, fill, dtype: np.array([list(t[key]) + [fill] * (n - len(t[key])) for t in trees], dtype)
+        leaf = pad("leaf", True, bool)
+        left, right = pad("left", 0, np.intp), pad("right", 0, np.intp)
+        feature, threshold = pad("feature", 0, np.intp), pad("threshold", 0.0, float)
+        missing_left, value = pad("missing_left", True, bool), pad("value", 0.0, float)
+        inner = ~leaf
+        if (feature[inner] >= len(feats)).any() or (feature[inner] < 0).any() or (left[inner] >= n).any() \
+                or (right[inner] >= n).any() or (left[inner] < 0).any() or (right[inner] < 0).any():
+            raise ValueError("node index out of range")
+        depth = max(_tree_depth(left[t], right[t], leaf[t]) for t in range(len(trees)))
+        ens = TreeEnsemble(feats, float(doc["baseline"]), feature, threshold, left, right, missing_left, leaf,
+                           value, depth, {k: v for k, v in doc.items()
+                                          if k not in ("format", "features", "baseline", "trees")})
+    except (KeyError, TypeError, ValueError, IndexError) as e:
+        raise ValueError(f"{source}: malformed tree ensemble ({e})") from None
+    return ens
+
+
+def load_tree_ensemble(path: str | Path) -> TreeEnsemble:
+    """Read a tree ensemble written by :func:`export_tree_ensemble`."""
+    with open(path, encoding="utf-8") as f:
+        return tree_ensemble_from_dict(json.load(f), str(path))
+
+
+def export_tree_ensemble(clf, features: list[str] | tuple[str, ...], **info) -> dict:
+    """The JSON document of a fitted binary scikit-learn ``HistGradientBoostingClassifier`` (numerical
+    features only); ``info`` is stored alongside (how it was fitted)."""
+    if getattr(clf, "n_trees_per_iteration_", 1) != 1:
+        raise ValueError("only binary classifiers can be exported")
+    trees = []
+    for (pred,) in clf._predictors:
+        nd = pred.nodes
+        if nd["is_categorical"].any():
+            raise ValueError("categorical splits are not supported")
+        trees.append({"feature": nd["feature_idx"].astype(int).tolist(),
+                      "threshold": [float(t) for t in nd["num_threshold"]],
+                      "left": nd["left"].astype(int).tolist(), "right": nd["right"].astype(int).tolist(),
+                      "missing_left": nd["missing_go_to_left"].astype(bool).tolist(),
+                      "leaf": nd["is_leaf"].astype(bool).tolist(), "value": [float(v) for v in nd["value"]]})
+    baseline = float(np.ravel(clf._baseline_prediction)[0])
+    return {"format": FORMAT, "features": list(features), "baseline": baseline, "trees": trees, **info}
+
+
+__all__ = ["TreeEnsemble", "load_tree_ensemble", "tree_ensemble_from_dict", "export_tree_ensemble"]

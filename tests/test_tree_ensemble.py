@@ -1,0 +1,82 @@
+"""The tree ensemble behind the classical marker score: export, evaluation, the shipped file."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from cpdetect.tree_ensemble import FORMAT, export_tree_ensemble, load_tree_ensemble, tree_ensemble_from_dict
+
+
+def _fitted(nan: bool = False):
+    from sklearn.ensemble import HistGradientBoostingClassifier
+
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(600, 4))
+    y = ((X[:, 0] * X[:, 1] > 0) ^ (X[:, 2] > 1.0)).astype(int)
+    if nan:
+        X[rng.random(X.shape) < 0.1] = np.nan
+    return HistGradientBoostingClassifier(max_depth=4, max_iter=30, random_state=0).fit(X, y), X
+
+
+@pytest.mark.parametrize("nan", [False, True])
+def test_export_reproduces_scikit_learn(tmp_path, nan):
+    clf, X = _fitted(nan)
+    path = tmp_path / "m.json"
+    path.write_text(json.dumps(export_tree_ensemble(clf, ["a", "b", "c", "d"], note="test")))
+    ens = load_tree_ensemble(path)
+    want = clf.predict_proba(X)[:, 1]
+    assert np.abs(ens.probability(X) - want).max() < 1e-12
+    # one sample at a time gives the same as the batch
+    assert abs(ens.probability(X[5]) - want[5]) < 1e-12
+    assert ens.features == ("a", "b", "c", "d") and ens.info["note"] == "test"
+    # an interaction no single feature explains: the trees learned it
+    assert ((ens.probability(X) >= 0.5) == clf.predict(X).astype(bool)).all()
+
+
+def test_hand_made_tree_routes_by_threshold_and_missing():
+    doc = {"format": FORMAT, "features": ["u"], "baseline": 0.0,
+           "trees": [{"feature": [0, 0, 0], "threshold": [1.0, 0.0, 0.0], "left": [1, 0, 0], "right": [2, 0, 0],
+                      "missing_left": [False, True, True], "leaf": [False, True, True], "value": [0.0, -2.0, 3.0]}]}
+    ens = tree_ensemble_from_dict(doc)
+    assert ens.log_odds(np.array([1.0])) == -2.0  # <= threshold goes left
+    assert ens.log_odds(np.array([1.0 + 1e-9])) == 3.0
+    assert ens.log_odds(np.array([np.nan])) == 3.0  # missing_left False at the root
+    assert ens.probability(np.array([5.0])) == pytest.approx(1 / (1 + np.exp(-3.0)), abs=1e-15)
+    with pytest.raises(ValueError, match="expected 1 features"):
+        ens.log_odds(np.zeros(2))
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda d: d.update(format="other/1"), "not a cpdetect.tree-ensemble/1"),
+    (lambda d: d.pop("trees"), "malformed"),
+    (lambda d: d["trees"][0].update(left=[7, 0, 0]), "out of range"),
+    (lambda d: d["trees"][0].update(feature=[3, 0, 0]), "out of range"),
+])
+def test_malformed_files_are_named(tmp_path, change, message):
+    doc = {"format": FORMAT, "features": ["u"], "baseline": 0.0,
+           "trees": [{"feature": [0, 0, 0], "threshold": [1.0, 0.0, 0.0], "left": [1, 0, 0], "right": [2, 0, 0],
+                      "missing_left": [True, True, True], "leaf": [False, True, True], "value": [0.0, -2.0, 3.0]}]}
+    change(doc)
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match=message) as e:
+        load_tree_ensemble(path)
+    assert str(path) in str(e.value)
+
+
+def test_shipped_marker_score_matches_the_detector_features():
+    from cpdetect.classical import SCORE_FEATURES, marker_score, score_model
+
+    ens = score_model()
+    assert ens.features == SCORE_FEATURES
+    assert ens.info["fitted_on"] and ens.info["script"] == "bench/fit_score.py"
+    # typical features of a clean marker and of a texture saddle that passed the core test
+    marker = dict(q=0.93, agree=0.97, logC=4.6, spread=0.08, e_rel=0.01, frac=0.98, widths_min=0.95,
+                  mid_share=0.15, core_ratio=0.7, log_r=3.0, opp=0.05, inverted=0.0, alternations=0.0,
+                  outer_mixed=0.1, hull_fallback=0.0, fill=0.97, alt_far=0.2, dark_surround=0.0)
+    saddle = dict(marker, agree=0.72, spread=0.3, e_rel=0.06, frac=0.78, widths_min=0.6, mid_share=0.4,
+                  opp=0.3, inverted=0.6, alternations=1.0, outer_mixed=0.5, fill=0.7, alt_far=0.9,
+                  dark_surround=0.6)
+    assert marker_score(marker) > 0.9 and marker_score(saddle) < 0.1
