@@ -54,7 +54,9 @@ def verified_rows(folders: list[str]) -> list[dict]:
     try:
         det = C.ClassicalDetector(min_score=0.0, colour_min_score=0.0)
         for folder in folders:
-            ds = train_split_dataset(folder, 0, 0, "cpdetect_fit_")
+            if not (Path(folder) / "markers.json").is_file():
+                raise SystemExit(f"{folder}: no markers.json (make it with cpdetect synth images)")
+            ds = train_split_dataset(folder, 0, 0, "cpdetect_fit_")  # checks that its backgrounds are train-split
             for k, item in enumerate(ds.images):
                 cur[0] = f"{folder}/{item.file}"
                 n0 = len(rows)
@@ -90,8 +92,9 @@ def main(argv=None) -> int:
 
     feats = list(C.SCORE_FEATURES)
     check = verified_rows(args.check) if args.check else []
+    Xc = np.array([[r[f] for f in feats] for r in check], float)
     try:  # before anything is written
-        shipped = C.score_model().probability(np.array([[r[f] for f in feats] for r in check], float)) if check else None
+        shipped = C.score_model().probability(Xc) if check else None
     except FileNotFoundError:
         shipped = None
     rows = verified_rows(args.data)
@@ -108,14 +111,14 @@ def main(argv=None) -> int:
         print("export does not reproduce the classifier", file=sys.stderr)
         return 1
     if check:
-        Xc = np.array([[r[f] for f in feats] for r in check], float)
         new = ens.probability(Xc)
         n_m = len({tuple(r["key"]) for r in check if r["label"]})
         print(f"check {', '.join(args.check)}: {n_m} markers with a verified candidate, {len(check)} candidates")
         for name, p in (("shipped", shipped), ("fitted", new)):
             if p is None:
                 continue
-            print(f"  {name:8s}", "  ".join(f"cut {c:.2f}: {'%d / %d' % kept(check, p, c)}" for c in (0.2, 0.35, 0.5, 0.65)))
+            cuts = (0.2, 0.35, 0.5, 0.65)
+            print(f"  {name:8s}", "  ".join(f"cut {c:.2f}: {'%d / %d' % kept(check, p, c)}" for c in cuts))
     write_json_atomic(args.out, doc, indent=None)
     print(f"written {args.out}")
     return 0

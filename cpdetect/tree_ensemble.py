@@ -13,7 +13,6 @@ scikit-learn. Anything else in the file (how it was fitted) is kept in :attr:`Tr
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -59,10 +58,8 @@ class TreeEnsemble:
 
     def probability(self, x: np.ndarray) -> np.ndarray | float:
         """P(positive class) in [0, 1] for ``x`` as in :meth:`log_odds`."""
-        z = self.log_odds(x)
-        if np.ndim(z) == 0:
-            return 1.0 / (1.0 + math.exp(-min(max(float(z), -700.0), 700.0)))
-        return 1.0 / (1.0 + np.exp(-np.clip(z, -700.0, 700.0)))
+        p = 1.0 / (1.0 + np.exp(-np.clip(self.log_odds(x), -700.0, 700.0)))
+        return float(p) if np.ndim(p) == 0 else p
 
 
 def _tree_depth(left: np.ndarray, right: np.ndarray, leaf: np.ndarray) -> int:

@@ -9,8 +9,8 @@ Steps for one image (uint8 gray or BGR; a path is read as gray):
    X-corners on the component, :func:`cpdetect.xcorner.xcorner_seeds`), each refined with
    :func:`cpdetect.refine.refine_center_coarse_to_fine` (``refine``; "none" skips it); the first
    refined centre where the classical marker model fits (:func:`cpdetect.classical.verify_marker_at`)
-   wins, else the centroid's refinement when sharp. On the test split this took instance recall from 0.795 to 0.850
-   and the mean centre error from 0.121 to 0.075 px (the centroid is a poor seed under perspective,
+   wins, else the centroid's refinement when sharp. On the test split this took instance recall from
+   0.795 to 0.850 and the mean centre error from 0.121 to 0.075 px (the centroid is a poor seed under perspective,
    occlusion and at the image border). With ``classical_seeds`` the classical detector's markers on
    the component are tried first, and a blob whose centre one of them confirms is kept (a fresh
    300-image test-split set: instance F1 0.928 -> 0.934);

@@ -561,4 +561,3 @@ def test_marker_on_a_background_dark_beside_one_sector_and_bright_beside_the_nex
     assert np.hypot(near[0].x - center[0], near[0].y - center[1]) < 0.1
     # not held against it as inverted surroundings (counted over all rays: 0.39, score 0.88 for the circle)
     assert near[0].score > 0.97
-
