@@ -1435,7 +1435,6 @@ class _Scan:
         s, k, gray, accepted = self.s, self.k, self.gray, self.accepted
         h, w = gray.shape
         verifier = _Verifier(levels, s, (w, h))
-        rejected = 0
         # coarse levels first: big markers are settled before their centres show again at fine levels
         cands = sorted(cands, key=lambda c: (-c.level, -c.contrast))
         cand_xy = np.array([[(c.x + 0.5) * k - 0.5, (c.y + 0.5) * k - 0.5] for c in cands]).reshape(-1, 2)
@@ -1445,15 +1444,16 @@ class _Scan:
         passed = verifier.prefilter(cand_xy, np.maximum(1.5, 1.5 * cand_scale), chat=cand_c,
                                     level=np.array([c.level for c in cands], float))
         self.prefiltered += int(passed.sum())
-        for ci, c in enumerate(cands):
+        # candidates the prefilter stopped count as rejected whether or not a marker found later
+        # covers them (looking that up candidate by candidate in Python cost 0.07 s on 45 MP images)
+        rejected = int((~passed).sum())
+        for ci in np.nonzero(passed)[0]:
+            c = cands[ci]
             scale = k * 2 ** c.level
             cx, cy = cand_xy[ci]
             if any(math.hypot(cx - v.x, cy - v.y) < max(0.5 * v.radius, 2.0 * scale) for v, _ in accepted):
                 continue
             r_start = max(1.5, 1.5 * scale)
-            if not passed[ci]:
-                rejected += 1
-                continue
             v = verifier.verify(cx, cy, r_start)
             if isinstance(v, str) or v.score < min_score:
                 rejected += 1
