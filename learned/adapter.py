@@ -3,7 +3,7 @@
 Steps for one image (uint8 gray or BGR; a path is read as gray):
 
 1. P(marker) by :func:`learned.infer.probability_map` (downscale to ``max_side``, tiles, N-scale HMA),
-   through torch or OpenCV DNN (``backend``; "auto" = torch when installed, else OpenCV on model.onnx);
+   through OpenCV DNN or torch (``backend``; "auto" = OpenCV on model.onnx on the CPU, else torch);
 2. instances: connected components of P >= ``threshold`` larger than ``min_radius_px``;
 3. centre: seeds on the full-resolution image (the probability-weighted centroid and the strongest
    X-corners on the component, :func:`cpdetect.xcorner.xcorner_seeds`), each refined with
@@ -70,8 +70,9 @@ class HMASettings:
     image small enough that its largest pass fits in ``max_side`` (default (0.5, 1.0, 2.0), so up to
     1024 px for the default max_side; None = always ``scales``): the 2.0 pass shows the network small
     markers at twice their size. On the validation set it found 107 of 123 markers instead of 102,
-    with 2 false instead of 4, at about 5x the time per megapixel. backend: "auto", "torch" or
-    "opencv". device: torch device.
+    with 2 false instead of 4, at about 5x the time per megapixel. backend: "auto" (OpenCV on the
+    exported model.onnx when the device is the CPU: faster there than torch, see
+    :mod:`learned.infer`; else torch), "torch" or "opencv". device: torch device.
     threshold: P(marker) cut for instances. max_side: the longest side the network sees (pixels; the
     image is downscaled to it; None = full resolution). tile / overlap: tiling of the processing image
     (pixels) for bounded memory. min_radius_px: smallest instance kept (equal-area radius, image
@@ -87,8 +88,9 @@ class HMASettings:
     as it is); 0.9 raised pixel IoU from 0.890 to 0.893 on validation and from 0.859 to 0.872 on a
     fresh test-split set (seed 777), with no blob of a found marker touched. max_seeds: X-corner
     seeds tried per instance besides the centroid (0 = centroid only). type_by: "model" (the
-    classical outline fit at the centre, falling back to shape) or "shape". threads: torch CPU
-    threads (default 1; None = leave torch's setting).
+    classical outline fit at the centre, falling back to shape) or "shape". threads: CPU
+    threads of the network (None, the default: 1 for torch, OpenCV's own setting, all cores, for
+    OpenCV; see below).
     instance_model: "auto" (decide keep or drop with the instance model stored beside the weights,
     :mod:`learned.instances`, when there is one) or "none" (the rules above). instance_threshold:
     its cut on P(marker) (None = the one stored with it). max_sigma_seed_px: with an instance model,
@@ -103,9 +105,11 @@ class HMASettings:
     network's: a classical marker where the network sees none adds nothing. (The classical type for centres
     the marker model does not verify instead of the shape's: type accuracy 0.968 -> 0.966 on the
     train-split dev set, so not used.)
-    One thread per detector because cpdetect parallelises over images (``--workers``): torch's
+    One torch thread per detector because cpdetect parallelises over images (``--workers``): torch's
     multi-threaded kernels on an oversubscribed CPU ran 20x slower here (13.7 against 0.71 s per
-    megapixel with one other busy process on 2 cores).
+    megapixel with one other busy process on 2 cores). OpenCV's threads share a busy CPU gracefully
+    (2 threads beside a busy process: 4.0 s on the 45 MP bench image, 1 thread 3.9 s, 2 threads on
+    an idle CPU 2.1 s), so OpenCV keeps all cores.
     """
 
     model_dir: str | None = None
@@ -125,7 +129,7 @@ class HMASettings:
     clear_rejected_below: float = 0.9
     max_seeds: int = 3
     type_by: str = "model"
-    threads: int | None = 1
+    threads: int | None = None
     instance_model: str = "auto"
     instance_threshold: float | None = None
     max_sigma_seed_px: float = 1.0
@@ -166,6 +170,8 @@ class HMASettings:
             raise ValueError("instance_threshold must be in (0, 1) (or None)")
         if not self.max_sigma_seed_px > 0:
             raise ValueError("max_sigma_seed_px must be positive")
+        if self.threads is not None and (not isinstance(self.threads, int) or self.threads < 1):
+            raise ValueError(f"threads must be a positive integer (or None), got {self.threads!r}")
         if not self.min_centre_reach >= 0:
             raise ValueError("min_centre_reach must be 0 or more")
 

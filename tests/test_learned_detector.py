@@ -200,6 +200,40 @@ def test_torch_and_opencv_backends_agree_through_the_detector(micro_model_dir):
     assert a.probability.std() > 1e-4
 
 
+def test_auto_backend_is_opencv_on_the_cpu_where_the_onnx_export_is(micro_model_dir, tmp_path):
+    import cv2
+
+    assert get_detector("hma", model_dir=str(micro_model_dir)).backend.name == "opencv"
+    only_pt = tmp_path / "pt_only"
+    only_pt.mkdir()
+    for name in ("config.json", "model.pt"):
+        (only_pt / name).write_bytes((micro_model_dir / name).read_bytes())
+    assert get_detector("hma", model_dir=str(only_pt)).backend.name == "torch"
+    # a set thread count holds while the network runs and is given back after it
+    det = get_detector("hma", model_dir=str(micro_model_dir), threads=1)
+    net, seen = det.backend.net, []
+
+    class Watched:  # cv2.dnn.Net's methods are read-only: watch it from outside
+        def setInput(self, x):
+            net.setInput(x)
+
+        def forward(self):
+            seen.append(cv2.getNumThreads())
+            return net.forward()
+
+    det.backend.net = Watched()
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(2)
+    try:
+        det.detect(marker_image(angle=0.3))
+        assert seen and set(seen) == {1}
+        assert cv2.getNumThreads() == 2
+    finally:
+        cv2.setNumThreads(before)
+    with pytest.raises(UsageError, match="threads"):
+        get_detector("hma", model_dir=str(micro_model_dir), threads=0)
+
+
 def test_detector_runs_without_torch(micro_model_dir, tmp_path):
     only_onnx = tmp_path / "onnx_only"
     only_onnx.mkdir()
