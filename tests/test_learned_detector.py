@@ -130,6 +130,35 @@ def test_blobs_without_a_marker_are_cleared_unless_the_network_is_sure():
     assert np.allclose(raw[110:140, 180:210], 0.7, atol=1e-3)
 
 
+def test_blobs_the_network_is_far_from_sure_of_are_dropped_unrefined_with_an_instance_model(monkeypatch):
+    import learned.adapter as adapter
+    from learned.instances import INSTANCE_FEATURES, InstanceModel
+
+    img, mask, _ = rendered("square", center=(121.3, 133.6), radius=26.0, angle=0.5)
+
+    class Soft(OracleBackend):  # P = 0.58 on the marker: a real marker, but the network unsure
+        def trunk(self, x):
+            m = cv2.resize(self.mask, (x.shape[1], x.shape[0]), interpolation=cv2.INTER_NEAREST) * 0.58
+            logit = np.log(np.clip(m, 1e-4, 1 - 1e-4) / np.clip(1 - m, 1e-4, 1))
+            return np.stack([np.zeros_like(logit), logit]), np.full(x.shape, 0.5, np.float32)
+
+    n = len(INSTANCE_FEATURES)
+    keep_all = InstanceModel(mean=(0.0,) * n, std=(1.0,) * n, weights=(0.0,) * n, bias=5.0, threshold=0.5)
+    refined = []
+    real = adapter.HMADetector._refined_centre
+    monkeypatch.setattr(adapter.HMADetector, "_refined_centre",
+                        lambda self, *a, **k: refined.append(1) or real(self, *a, **k))
+    gated = HMADetector.with_backend(Soft(mask), keep_all, scales=(1.0,)).detect(img)
+    assert gated.detections == [] and refined == []
+    assert gated.probability.max() < 0.5  # unsure and dropped: its blob cleared like any rejected one
+    # the same blob refined and judged when the gate is off, or without an instance model
+    for det in (HMADetector.with_backend(Soft(mask), keep_all, scales=(1.0,), min_blob_mean_p=0.0),
+                HMADetector.with_backend(Soft(mask), None, scales=(1.0,))):
+        found = det.detect(img).detections
+        assert len(found) == 1 and np.hypot(found[0].x - 121.3, found[0].y - 133.6) < 0.15
+    assert refined
+
+
 def test_small_images_get_the_extra_scale_within_max_side():
     det = HMADetector.with_backend(OracleBackend(np.zeros((4, 4))))
     assert det.scales_for(640, 480) == (0.5, 1.0, 2.0)
