@@ -259,14 +259,12 @@ def refine_symmetry(gray: np.ndarray, x0: float, y0: float, radius_px: float, wi
     sn = np.inf
     robust = np.ones(len(d))
     n_robust = 0  # robust weights are updated a few times, then frozen (no oscillation)
+    adi = np.abs(di)
+    w_all = float(np.sum(wt))
+    at = None  # the integer position the offsets' bookkeeping below was made for
     for it in range(max_iter):
         lx, ly = px - patch.x0, py - patch.y0
         ix, iy = int(math.floor(lx)), int(math.floor(ly))
-        # offsets whose pair falls off the patch (marker at the image border) are dropped
-        inside = ((ix - np.abs(di[:, 0]) >= 2) & (ix + np.abs(di[:, 0]) <= ww - 3)
-                  & (iy - np.abs(di[:, 1]) >= 2) & (iy + np.abs(di[:, 1]) <= hh - 3))
-        if np.sum(wt[inside]) < 0.4 * np.sum(wt):
-            return _fail(x0, y0, "symmetry", "window leaves the image")
         # every sample p +- d shares the fractional part of p: shift the patch once by exact cubic
         # weights (cv2.remap quantises positions to 1/32 px, which would floor the accuracy)
         # only the window around the current point is filtered: the patch also holds the allowed
@@ -274,17 +272,30 @@ def refine_symmetry(gray: np.ndarray, x0: float, y0: float, radius_px: float, wi
         # covers the taps of the shift and the Sobel, so values are those of the whole patch.
         cx0, cy0 = max(ix - n_off - 5, 0), max(iy - n_off - 5, 0)
         sub = img[cy0:min(iy + n_off + 6, hh), cx0:min(ix + n_off + 6, ww)]
+        if at != (ix, iy):
+            # which offsets count and where their samples lie depend only on the integer position,
+            # which stays put over most iterations
+            at = (ix, iy)
+            # offsets whose pair falls off the patch (marker at the image border) are dropped
+            inside = ((ix - adi[:, 0] >= 2) & (ix + adi[:, 0] <= ww - 3)
+                      & (iy - adi[:, 1] >= 2) & (iy + adi[:, 1] <= hh - 3))
+            every = bool(inside.all())
+            if (w_all if every else np.sum(wt[inside])) < 0.4 * w_all:
+                return _fail(x0, y0, "symmetry", "window leaves the image")
+            dd, dv, wt_in = (d, di, wt) if every else (d[inside], di[inside], wt[inside])
+            jx, jy, sw = ix - cx0, iy - cy0, sub.shape[1]
+            at_p = (jy + dv[:, 1]) * sw + (jx + dv[:, 0])  # flat indices of p + d and p - d
+            at_m = (jy - dv[:, 1]) * sw + (jx - dv[:, 0])
+            fixed = -2 * dd
         sh = _subpixel_shift(sub, lx - ix, ly - iy)
         gx = cv2.Sobel(sh, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
         gy = cv2.Sobel(sh, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-        stack = np.dstack([sh, gx, gy])
-        dd, dv = d[inside], di[inside]
-        jx, jy = ix - cx0, iy - cy0
-        sp = stack[jy + dv[:, 1], jx + dv[:, 0]].astype(np.float64)
-        sm = stack[jy - dv[:, 1], jx - dv[:, 0]].astype(np.float64)
-        r = sp[:, 0] - sm[:, 0]
-        J = np.column_stack([sp[:, 1] - sm[:, 1], sp[:, 2] - sm[:, 2], -2 * dd[:, 0], -2 * dd[:, 1]])
-        wi = wt[inside] * robust[inside]
+        sp0 = sh.ravel().take(at_p).astype(np.float64)
+        r = sp0 - sh.ravel().take(at_m)
+        gxr, gyr = gx.ravel(), gy.ravel()
+        J = np.column_stack([gxr.take(at_p).astype(np.float64) - gxr.take(at_m),
+                             gyr.take(at_p).astype(np.float64) - gyr.take(at_m), fixed])
+        wi = wt_in * (robust if every else robust[inside])
         JW = J * wi[:, None]
         N = JW.T @ J
         try:
@@ -330,7 +341,7 @@ def refine_symmetry(gray: np.ndarray, x0: float, y0: float, radius_px: float, wi
     sigma *= math.sqrt(max(1.0, 4.0 * math.pi * ss * ss))
     sigma = math.sqrt(sigma * sigma + 0.01 ** 2)
     # a pattern that is not point symmetric leaves large residuals relative to its contrast
-    contrast = float(np.percentile(np.abs(sp[:, 0] - np.median(sp[:, 0])), 90)) + 1e-6
+    contrast = float(np.percentile(np.abs(sp0 - np.median(sp0)), 90)) + 1e-6
     if math.sqrt(s2) > 0.35 * contrast:
         return RefineResult(px, py, sigma, "symmetry", False, "window is not point symmetric")
     return RefineResult(px, py, sigma, "symmetry", True)
