@@ -110,13 +110,14 @@ class OpenCVBackend:
         h, w = x.shape
         xp = _pad_to_multiple(np.ascontiguousarray(x, np.float32))
         self.net.setInput(xp[None, None])
-        before = cv2.getNumThreads()
-        if self.threads:
-            cv2.setNumThreads(self.threads)
-        try:
+        if not self.threads:
             out = self.net.forward()  # (1, K + 1, H, W): K logits then the attention
-        finally:
-            if self.threads:
+        else:
+            before = cv2.getNumThreads()
+            cv2.setNumThreads(self.threads)
+            try:
+                out = self.net.forward()
+            finally:
                 cv2.setNumThreads(before)
         out = np.asarray(out)[0, :, :h, :w]
         return np.ascontiguousarray(out[:-1]), np.ascontiguousarray(out[-1])
