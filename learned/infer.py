@@ -138,6 +138,8 @@ def open_backend(model_dir: str | os.PathLike, backend: str = "auto", device: st
     d = Path(model_dir)
     if backend not in ("auto", "torch", "opencv"):
         raise UsageError(f"unknown backend {backend!r}; valid: auto, torch, opencv")
+    if not d.is_dir():
+        raise InputError("model folder not found" if not d.exists() else "expected a model folder, found a file", d)
     if backend == "auto":
         on_cpu = str(device).split(":")[0] == "cpu"
         if (d / ONNX_FILE).exists() and on_cpu:

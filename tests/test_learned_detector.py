@@ -261,6 +261,10 @@ def test_auto_backend_is_opencv_on_the_cpu_where_the_onnx_export_is(micro_model_
         cv2.setNumThreads(before)
     with pytest.raises(UsageError, match="threads"):
         get_detector("hma", model_dir=str(micro_model_dir), threads=0)
+    from cpdetect.errors import InputError
+
+    with pytest.raises(InputError, match="model folder not found"):
+        get_detector("hma", model_dir=str(tmp_path / "nowhere"))
 
 
 def test_detector_runs_without_torch(micro_model_dir, tmp_path):
