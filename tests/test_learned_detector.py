@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from cpdetect import get_detector
-from cpdetect.errors import UsageError
+from cpdetect.errors import InputError, UsageError
 from cpdetect.markers import MarkerSpec, frontal_homography, render_marker
 from learned.adapter import HMADetector, checker_phase_type, classify_shape, shipped_weights_present
 from detector_contract import DetectorContract, marker_image
@@ -28,6 +28,15 @@ class OracleBackend:
     def trunk(self, x: np.ndarray):
         m = cv2.resize(self.mask, (x.shape[1], x.shape[0]), interpolation=cv2.INTER_LINEAR)
         logit = 16.0 * (m - 0.5)
+        return np.stack([np.zeros_like(logit), logit]), np.full(x.shape, 0.5, np.float32)
+
+
+class SoftBackend(OracleBackend):
+    """Stands in for the network with a given P(marker) map (the mask's values, not 0 / 1)."""
+
+    def trunk(self, x: np.ndarray):
+        m = cv2.resize(self.mask, (x.shape[1], x.shape[0]), interpolation=cv2.INTER_NEAREST)
+        logit = np.log(np.clip(m, 1e-4, 1 - 1e-4) / np.clip(1 - m, 1e-4, 1))
         return np.stack([np.zeros_like(logit), logit]), np.full(x.shape, 0.5, np.float32)
 
 
@@ -114,19 +123,13 @@ def test_blobs_without_a_marker_are_cleared_unless_the_network_is_sure():
     soft[100:150, 170:220] = 0.7
     soft[30:60, 180:210] = 0.97
 
-    class Soft(OracleBackend):
-        def trunk(self, x):
-            m = cv2.resize(self.mask, (x.shape[1], x.shape[0]), interpolation=cv2.INTER_NEAREST)
-            logit = np.log(np.clip(m, 1e-4, 1 - 1e-4) / np.clip(1 - m, 1e-4, 1))
-            return np.stack([np.zeros_like(logit), logit]), np.full(x.shape, 0.5, np.float32)
-
-    res = HMADetector.with_backend(Soft(soft), scales=(1.0,)).detect(img)
+    res = HMADetector.with_backend(SoftBackend(soft), scales=(1.0,)).detect(img)
     assert len(res.detections) == 1 and res.detections[0].type == "square"
     p = res.probability
     assert p[110:140, 180:210].max() == 0.0  # unsure and no marker: cleared
     assert np.allclose(p[35:55, 185:205], 0.97, atol=1e-3)  # sure: kept for the pixel metrics
     assert p[mask > 0].mean() > 0.95  # the marker's own blob is untouched
-    raw = HMADetector.with_backend(Soft(soft), scales=(1.0,), clear_rejected_below=0.0).detect(img).probability
+    raw = HMADetector.with_backend(SoftBackend(soft), scales=(1.0,), clear_rejected_below=0.0).detect(img).probability
     assert np.allclose(raw[110:140, 180:210], 0.7, atol=1e-3)
 
 
@@ -135,12 +138,7 @@ def test_blobs_the_network_is_far_from_sure_of_are_dropped_unrefined_with_an_ins
     from learned.instances import INSTANCE_FEATURES, InstanceModel
 
     img, mask, _ = rendered("square", center=(121.3, 133.6), radius=26.0, angle=0.5)
-
-    class Soft(OracleBackend):  # P = 0.58 on the marker: a real marker, but the network unsure
-        def trunk(self, x):
-            m = cv2.resize(self.mask, (x.shape[1], x.shape[0]), interpolation=cv2.INTER_NEAREST) * 0.58
-            logit = np.log(np.clip(m, 1e-4, 1 - 1e-4) / np.clip(1 - m, 1e-4, 1))
-            return np.stack([np.zeros_like(logit), logit]), np.full(x.shape, 0.5, np.float32)
+    unsure = mask.astype(np.float32) * 0.58  # a real marker, but the network unsure of it
 
     n = len(INSTANCE_FEATURES)
     keep_all = InstanceModel(mean=(0.0,) * n, std=(1.0,) * n, weights=(0.0,) * n, bias=5.0, threshold=0.5)
@@ -148,12 +146,12 @@ def test_blobs_the_network_is_far_from_sure_of_are_dropped_unrefined_with_an_ins
     real = adapter.HMADetector._refined_centre
     monkeypatch.setattr(adapter.HMADetector, "_refined_centre",
                         lambda self, *a, **k: refined.append(1) or real(self, *a, **k))
-    gated = HMADetector.with_backend(Soft(mask), keep_all, scales=(1.0,)).detect(img)
+    gated = HMADetector.with_backend(SoftBackend(unsure), keep_all, scales=(1.0,)).detect(img)
     assert gated.detections == [] and refined == []
     assert gated.probability.max() < 0.5  # unsure and dropped: its blob cleared like any rejected one
     # the same blob refined and judged when the gate is off, or without an instance model
-    for det in (HMADetector.with_backend(Soft(mask), keep_all, scales=(1.0,), min_blob_mean_p=0.0),
-                HMADetector.with_backend(Soft(mask), None, scales=(1.0,))):
+    for det in (HMADetector.with_backend(SoftBackend(unsure), keep_all, scales=(1.0,), min_blob_mean_p=0.0),
+                HMADetector.with_backend(SoftBackend(unsure), None, scales=(1.0,))):
         found = det.detect(img).detections
         assert len(found) == 1 and np.hypot(found[0].x - 121.3, found[0].y - 133.6) < 0.15
     assert refined
@@ -261,8 +259,6 @@ def test_auto_backend_is_opencv_on_the_cpu_where_the_onnx_export_is(micro_model_
         cv2.setNumThreads(before)
     with pytest.raises(UsageError, match="threads"):
         get_detector("hma", model_dir=str(micro_model_dir), threads=0)
-    from cpdetect.errors import InputError
-
     with pytest.raises(InputError, match="model folder not found"):
         get_detector("hma", model_dir=str(tmp_path / "nowhere"))
 
