@@ -73,7 +73,7 @@ def blob_table(det, ds, maps) -> tuple[list[dict], list[int], list[str], int, li
     return rows, labels, groups, n_markers, rules
 
 
-def cross_validated(rows, labels, groups, n_markers, rules, folds: int = 5) -> dict:
+def cross_validated(rows, labels, groups, n_markers, rules, features, folds: int = 5) -> dict:
     """Marker-level F1 of the rules and of the model (fitted on the other folds, each fold's own
     threshold taken from its training part), over the same blobs."""
     from learned.instances import fit_instance_model
@@ -90,7 +90,7 @@ def cross_validated(rows, labels, groups, n_markers, rules, folds: int = 5) -> d
         pos_tr = int(np.sum(y[tr]))
         # markers to find in the training part, in proportion to its share of the positives
         m_tr = max(int(round(n_markers * pos_tr / max(int(y.sum()), 1))), pos_tr)
-        model = fit_instance_model([rows[j] for j in np.flatnonzero(tr)], y[tr], m_tr)
+        model = fit_instance_model([rows[j] for j in np.flatnonzero(tr)], y[tr], m_tr, features=features)
         keep[te] = [model.probability(rows[j]) >= model.threshold for j in np.flatnonzero(te)]
 
     def f1(k):
@@ -104,46 +104,73 @@ def cross_validated(rows, labels, groups, n_markers, rules, folds: int = 5) -> d
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model-dir", default=None, help="network folder (default: the shipped one)")
-    ap.add_argument("--data", default=None, help="existing dataset with train-split backgrounds")
+    ap.add_argument("--data", action="append", default=None,
+                    help="existing dataset with train-split backgrounds (repeatable)")
     ap.add_argument("--n", type=int, default=400)
     ap.add_argument("--seed", type=int, default=11)
-    ap.add_argument("--cache", default=None, help="folder for the probability maps (reused when present)")
+    ap.add_argument("--cache", default=None, help="folder for the probability maps (reused when present; "
+                                                  "default: DATA/probability_maps; one --data only)")
     ap.add_argument("--out", default=str(RESULTS))
     ap.add_argument("--dry-run", action="store_true", help="fit and report, but do not write the model file")
+    ap.add_argument("--features", choices=("base", "all"), default="base",
+                    help="base: the twelve features of learned.instances.INSTANCE_FEATURES; all: with the "
+                         "symmetry features of the chosen centre (learned.centre_choice)")
     args = ap.parse_args(argv)
 
-    from cpdetect.fileio import write_json_atomic
     from learned.adapter import HMADetector, default_model_dir
-    from learned.instances import fit_instance_model
+    from learned.centre_choice import load_centre_ranker
+    from learned.instances import INSTANCE_FEATURES, SYMMETRY_FEATURES, fit_instance_model
 
     model_dir = Path(args.model_dir) if args.model_dir else default_model_dir()
-    ds = train_split_dataset(args.data, args.n, args.seed, "cpdetect_fit_hma_")
-    root = ds.root
+    if args.cache and len(args.data or []) > 1:
+        ap.error("--cache needs a single --data (each dataset keeps its maps in DATA/probability_maps)")
     t0 = time.time()
     det = HMADetector(model_dir=str(model_dir), instance_model="none")
-    cache = Path(args.cache) if args.cache else root / "probability_maps"
-    maps = probability_maps(det, ds, cache)
-    rows, labels, groups, n_markers, rules = blob_table(det, ds, maps)
-    cv = cross_validated(rows, labels, groups, n_markers, rules)
+    # the blobs' centres as the detector will choose them: by the centre ranker when there is one
+    det.centre_ranker = load_centre_ranker(model_dir)
+    features = INSTANCE_FEATURES + (SYMMETRY_FEATURES if args.features == "all" else ())
+    rows, labels, groups, rules, roots = [], [], [], [], []
+    n_markers = n_images = 0
+    for data in args.data or [None]:
+        ds = train_split_dataset(data, args.n, args.seed, "cpdetect_fit_hma_")
+        roots.append(str(ds.root))
+        n_images += len(ds.images)
+        maps = probability_maps(det, ds, Path(args.cache) if args.cache else ds.root / "probability_maps")
+        r, y, g, n, ru = blob_table(det, ds, maps)
+        rows += r
+        labels += y
+        groups += [f"{ds.root}/{x}" for x in g]
+        n_markers += n
+        rules += ru
+    cv = cross_validated(rows, labels, groups, n_markers, rules, features)
     model = fit_instance_model(rows, labels, n_markers, fitted={
-        "data": {"root": str(root), "images": len(ds.images), "split": "train"},
+        "data": {"roots": roots, "images": n_images, "split": "train"},
         "network": str(model_dir), "date": time.strftime("%Y-%m-%d"),
-        "command": "bench/fit_hma_instances.py " + " ".join(argv if argv is not None else sys.argv[1:])})
+        "command": "bench/fit_hma_instances.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "centre_ranker": det.centre_ranker is not None}, features=features)
     if not args.dry_run:
         model.save(model_dir)
-    report = {"model_dir": str(model_dir), "images": len(ds.images), "markers": n_markers, "blobs": len(labels),
+    report = {"model_dir": str(model_dir), "images": n_images, "markers": n_markers, "blobs": len(labels),
               "positives": int(np.sum(labels)), "threshold": model.threshold, "cross_validated": cv,
               "weights": dict(zip(model.features, model.weights)), "seconds": time.time() - t0,
               "written": not args.dry_run}
-    write_json_atomic(args.out, report)
     r, m = cv["rules"], cv["model"]
-    print(f"{len(ds.images)} images, {n_markers} markers, {len(labels)} blobs with a centre ({int(np.sum(labels))} "
-          f"on a marker); threshold {model.threshold}")
-    print(f"5-fold marker-level F1: rules {r['f1']:.4f} (tp {r['tp']} fp {r['fp']}), "
-          f"model {m['f1']:.4f} (tp {m['tp']} fp {m['fp']})")
-    print(("dry run: nothing written" if args.dry_run else f"written {model_dir / 'instance_score.json'}") +
-          f"; figures in {args.out}")
+    finish(report, args.out, [
+        f"{n_images} images, {n_markers} markers, {len(labels)} blobs with a centre ({int(np.sum(labels))} "
+        f"on a marker); threshold {model.threshold}",
+        f"5-fold marker-level F1: rules {r['f1']:.4f} (tp {r['tp']} fp {r['fp']}), "
+        f"model {m['f1']:.4f} (tp {m['tp']} fp {m['fp']})"], None if args.dry_run else model_dir / model.FILE)
     return 0
+
+
+def finish(report: dict, out: str, lines: list[str], written: Path | None) -> None:
+    """Write the figures to ``out`` and print ``lines`` and what was written."""
+    from cpdetect.fileio import write_json_atomic
+
+    write_json_atomic(out, report)
+    for line in lines:
+        print(line)
+    print(("dry run: nothing written" if written is None else f"written {written}") + f"; figures in {out}")
 
 
 if __name__ == "__main__":

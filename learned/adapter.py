@@ -13,7 +13,10 @@ Steps for one image (uint8 gray or BGR; a path is read as gray):
    0.795 to 0.850 and the mean centre error from 0.121 to 0.075 px (the centroid is a poor seed under perspective,
    occlusion and at the image border). With ``classical_seeds`` the classical detector's markers on
    the component are tried first, and a blob whose centre one of them confirms is kept (a fresh
-   300-image test-split set: instance F1 0.928 -> 0.934);
+   300-image test-split set: instance F1 0.928 -> 0.934). With a centre ranker beside the weights
+   (``centre_rank.json``, :mod:`learned.centre_choice`) every seed (up to ``rank_seeds``) is refined
+   instead and the candidate it scores highest from the refinement's evidence and the symmetry of
+   the image and the blob about it wins;
    Blobs that yield no marker, and that the network is not sure of (mean P < ``clear_rejected_below``),
    are cleared from the probability map the detector returns: louvers, window crosses, dark arches;
 4. keep or drop: with an instance model beside the weights (``instance_score.json``, see
@@ -46,6 +49,7 @@ from cpdetect.centre_reach import CENTRE_REACH_MIN, centre_reach
 from cpdetect.detector import as_gray_uint8, settings_from_dataclass
 from cpdetect.types import DetectionResult, MarkerDetection
 
+from .centre_choice import CentreRanker, load_centre_ranker
 from .instances import InstanceModel, blob_features, load_instance_model
 
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parent / "weights" / "default"
@@ -101,6 +105,18 @@ class HMASettings:
     no marker it kept; skipping them took the instance stage of the textured 45 MP bench image
     from 3.1 to 2.7 s (9 texture blobs of 23) and 3 % off the refinement of the small images
     (0 = refine every blob).
+    centre_ranker: "auto" (with an instance model and a centre ranker beside the weights,
+    ``centre_rank.json``, :mod:`learned.centre_choice`: every seed is refined and the candidate the
+    ranker scores highest is the blob's centre, instead of the first verified one) or "none".
+    rank_seeds: X-corner seeds per blob besides the centroid when the ranker chooses (a partly
+    covered marker's own centre is often not among the three strongest corners on its blob);
+    ``rank_seeds_unsure`` of them on a blob whose mean P is under ``rank_sure_mean_p``: texture
+    blobs, which get the most seeds refined for nothing (on the textured 45 MP bench image, 14 blobs
+    of mean P 0.61-0.84 beside the markers' 0.97-0.99: their centres took 1.80 s with 8 seeds
+    everywhere, 0.84 s with 3, against 0.80 s for the rules), while 10 of the 15 blobs of the
+    train-split fitting data whose right centre came from a seed past the third had mean P >= 0.85.
+    rank_stop: the seeds are refined in order (centroid, then the strongest X-corners) and the
+    search stops at the first candidate the ranker scores at least this (1 = refine them all).
     min_centre_reach: drop a refined centre where the four sectors do not meet
     (:func:`cpdetect.centre_reach.centre_reach` below this; 0 keeps every one), the classical
     detector's cut.
@@ -141,6 +157,11 @@ class HMASettings:
     min_blob_mean_p: float = 0.6
     min_centre_reach: float = CENTRE_REACH_MIN
     classical_seeds: bool = False
+    centre_ranker: str = "auto"
+    rank_seeds: int = 8
+    rank_seeds_unsure: int = 3
+    rank_sure_mean_p: float = 0.85
+    rank_stop: float = 0.9
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "scales", tuple(float(s) for s in self.scales))
@@ -154,6 +175,10 @@ class HMASettings:
             object.__setattr__(self, "small_scales", None)
         if self.backend not in ("auto", "torch", "opencv"):
             raise ValueError(f"backend must be auto, torch or opencv, got {self.backend!r}")
+        if self.centre_ranker not in ("auto", "none"):
+            raise ValueError(f"centre_ranker must be auto or none, got {self.centre_ranker!r}")
+        if min(self.rank_seeds, self.rank_seeds_unsure) < 0 or not 0.0 < self.rank_stop <= 1.0:
+            raise ValueError("need rank_seeds, rank_seeds_unsure >= 0 and 0 < rank_stop <= 1")
         if not 0.0 < self.threshold < 1.0:
             raise ValueError("threshold must be in (0, 1)")
         if self.max_side is not None and self.max_side < 64:
@@ -284,17 +309,24 @@ class HMADetector:
         self.model_dir = model_dir
         self.backend = open_backend(model_dir, s.backend, s.device, s.threads)
         self.instance_model = load_instance_model(model_dir) if s.instance_model == "auto" else None
+        ranker = load_centre_ranker(model_dir) if s.centre_ranker == "auto" else None
+        self.centre_ranker = ranker if self.instance_model is not None else None
+        self.collect_options = False  # keep every centre candidate on the blobs (for fitting the ranker)
 
     @classmethod
     def with_backend(cls, backend: Any, instances: InstanceModel | None = None,
-                     **settings: Any) -> "HMADetector":
+                     ranker: CentreRanker | None = None, **settings: Any) -> "HMADetector":
         """A detector around an already opened backend (anything with ``name`` and ``trunk(x)``),
-        with an optional instance model (ignored when the setting ``instance_model`` is "none")."""
+        with an optional instance model (ignored when the setting ``instance_model`` is "none") and
+        centre ranker (used with an instance model, unless ``centre_ranker`` is "none")."""
         self = cls.__new__(cls)
         self.settings = settings_from_dataclass(HMASettings, settings)
         self.model_dir = None
         self.backend = backend
         self.instance_model = instances if self.settings.instance_model == "auto" else None
+        use_ranker = self.instance_model is not None and self.settings.centre_ranker == "auto"
+        self.centre_ranker = ranker if use_ranker else None
+        self.collect_options = False
         return self
 
     # ------------------------------------------------------------------
@@ -364,7 +396,14 @@ class HMADetector:
             if self.instance_model is not None and blob.mean_p < s.min_blob_mean_p:
                 blob.hopeless = True  # the instance model would not keep it (see HMASettings)
                 continue
-            c = self._refined_centre(gray, labels, f, k, blob.bbox, radius, blob.centroid, loose, extra)
+            if self.centre_ranker is not None or self.collect_options:
+                sure = blob.mean_p >= s.rank_sure_mean_p or self.collect_options
+                blob.options = self._centre_options(gray, labels, f, k, blob.bbox, radius, blob.centroid, extra,
+                                                    s.rank_seeds if sure else min(s.rank_seeds, s.rank_seeds_unsure))
+            if self.centre_ranker is not None:
+                c = max(blob.options, key=lambda o: o[2])[0] if blob.options else None
+            else:
+                c = self._refined_centre(gray, labels, f, k, blob.bbox, radius, blob.centroid, loose, extra)
             if c is not None and seeds:
                 c = _with_classical(c, seeds, radius)
             blob.centre = c
@@ -373,7 +412,7 @@ class HMADetector:
                     radius, blob.mean_p, float(p.max()), float(np.count_nonzero(p >= 0.9)) / area,
                     _solidity(comp, area), x0 == 0 or y0 == 0 or x0 + bw >= pw or y0 + bh >= ph,
                     c.kind, c.sigma, math.hypot(c.x - blob.centroid[0], c.y - blob.centroid[1]) / radius,
-                    c.model_score)
+                    c.model_score, c.sym180, c.sym90, c.blob_sym)
         return out, labels
 
     def _instances(self, gray: np.ndarray, prob: np.ndarray, f: float,
@@ -465,23 +504,7 @@ class HMADetector:
         from cpdetect.xcorner import xcorner_seeds
 
         s = self.settings
-        x0, y0, bw, bh = bbox
-        pad = max(2, int(math.ceil(0.15 * radius * f)))
-        ph, pw = labels.shape
-        bx0, by0 = max(0, x0 - pad), max(0, y0 - pad)
-        bx1, by1 = min(pw, x0 + bw + pad), min(ph, y0 + bh + pad)
-        near = cv2.dilate((labels[by0:by1, bx0:bx1] == k).astype(np.uint8),
-                          np.ones((2 * pad + 1, 2 * pad + 1), np.uint8))
-
-        def inside(xs, ys):
-            u = np.floor((xs + 0.5) * f).astype(int) - bx0
-            v = np.floor((ys + 0.5) * f).astype(int) - by0
-            ok = (u >= 0) & (v >= 0) & (u < near.shape[1]) & (v < near.shape[0])
-            out = np.zeros(xs.shape, bool)
-            out[ok] = near[v[ok], u[ok]] > 0
-            return out
-
-        box = (int(bx0 / f), int(by0 / f), int(math.ceil(bx1 / f)), int(math.ceil(by1 / f)))
+        inside, box = _seed_region(labels, f, k, bbox, radius)
         seeds = [centroid] + [(x, y) for x, y, _ in xcorner_seeds(gray, box, radius, inside, s.max_seeds)]
         n_extra = 0
         if extra:
@@ -528,6 +551,78 @@ class HMADetector:
             return fallback
         return other if loose else None
 
+    def _centre_options(self, gray, labels, f, k, bbox, radius, centroid, extra: list[tuple[float, float]] = (),
+                        n_seeds: int = 8) -> list[tuple["_Centre", dict, float]]:
+        """The centre candidates of component ``k`` for the ranker: the centroid, the classical
+        detector's markers on it (``extra``) and up to ``n_seeds`` X-corner seeds, each refined
+        (kept when ok with sigma <= max(max_sigma_verified_px, max_sigma_seed_px), duplicates within
+        a pixel dropped), with its :func:`learned.centre_choice.candidate_features` and the ranker's
+        score (0 without one). With a ranker, stops after the first scored at least ``rank_stop``."""
+        from cpdetect.classical import verify_marker_at
+        from cpdetect.refine import refine_center_coarse_to_fine
+        from cpdetect.xcorner import xcorner_seeds
+
+        from .centre_choice import blob_symmetry, candidate_features, point_symmetry
+
+        s = self.settings
+        x0, y0, bw, bh = bbox
+        comp = labels[y0:y0 + bh, x0:x0 + bw] == k
+        inside, box = _seed_region(labels, f, k, bbox, radius)
+        xs = xcorner_seeds(gray, box, radius, inside, n_seeds)
+        strongest = max([c for _, _, c in xs], default=1.0) or 1.0
+        seeds = [(centroid[0], centroid[1], 0.0)]
+        if extra:
+            ex = np.array(extra, float)
+            seeds += [(px, py, 1.0) for px, py in ex[inside(ex[:, 0], ex[:, 1])]]
+        seeds += [(x, y, c / strongest) for x, y, c in xs]
+        checked = max(s.max_sigma_px, s.max_sigma_verified_px)
+        loosest = max(checked, s.max_sigma_seed_px)
+        out: list[tuple[_Centre, dict, float]] = []
+        for i, (sx, sy, strength) in enumerate(seeds):
+            r = refine_center_coarse_to_fine(gray, sx, sy, radius, s.refine)
+            if not (r.ok and r.sigma_px <= loosest):
+                continue
+            if any(math.hypot(r.x - o.x, r.y - o.y) < 1.0 for o, _, _ in out):
+                continue
+            sigma = max(float(r.sigma_px), 1e-3)
+            v = verify_marker_at(gray, r.x, r.y, radius) if r.sigma_px <= checked else None
+            sym180, sym90 = point_symmetry(gray, r.x, r.y, radius)
+            bsym = blob_symmetry(comp, (r.x + 0.5) * f - 0.5 - x0, (r.y + 0.5) * f - 0.5 - y0)
+            sharp = r.sigma_px <= s.max_sigma_px
+            kind = "verified" if v is not None else ("centroid" if i == 0 and sharp else "seed")
+            c = _Centre(float(r.x), float(r.y), sigma, kind, v[0] if v is not None and s.type_by == "model" else None,
+                        v[2] if v is not None else 0.0, sym180=sym180, sym90=sym90, blob_sym=bsym)
+            offset = math.hypot(r.x - centroid[0], r.y - centroid[1]) / radius
+            feats = candidate_features(sigma, offset, v is not None, c.model_score,
+                                       centre_reach(gray, r.x, r.y, radius), bsym, sym180, sym90, i == 0, strength)
+            score = self.centre_ranker.probability(feats) if self.centre_ranker is not None else 0.0
+            out.append((c, feats, score))
+            if score >= s.rank_stop:
+                break
+        return out
+
+
+def _seed_region(labels: np.ndarray, f: float, k: int, bbox: tuple[int, int, int, int], radius: float):
+    """Where the centre seeds of component ``k`` may lie: ``inside(xs, ys)`` (full-resolution
+    arrays -> bool array: on the component dilated by 0.15 radius) and the full-resolution box
+    (x0, y0, x1, y1) around it; ``bbox`` in probability-map pixels, ``f`` of them per image pixel."""
+    x0, y0, bw, bh = bbox
+    pad = max(2, int(math.ceil(0.15 * radius * f)))
+    ph, pw = labels.shape
+    bx0, by0 = max(0, x0 - pad), max(0, y0 - pad)
+    bx1, by1 = min(pw, x0 + bw + pad), min(ph, y0 + bh + pad)
+    near = cv2.dilate((labels[by0:by1, bx0:bx1] == k).astype(np.uint8), np.ones((2 * pad + 1, 2 * pad + 1), np.uint8))
+
+    def inside(xs, ys):
+        u = np.floor((xs + 0.5) * f).astype(int) - bx0
+        v = np.floor((ys + 0.5) * f).astype(int) - by0
+        ok = (u >= 0) & (v >= 0) & (u < near.shape[1]) & (v < near.shape[0])
+        out = np.zeros(xs.shape, bool)
+        out[ok] = near[v[ok], u[ok]] > 0
+        return out
+
+    return inside, (int(bx0 / f), int(by0 / f), int(math.ceil(bx1 / f)), int(math.ceil(by1 / f)))
+
 
 @dataclass
 class BlobCandidate:
@@ -543,6 +638,7 @@ class BlobCandidate:
     centre: "_Centre | None" = None
     features: dict | None = None
     hopeless: bool = False  # dropped unrefined: its mean P is below min_blob_mean_p
+    options: list = dataclasses.field(default_factory=list)  # (_Centre, features, ranker score) when ranked
 
 
 @dataclass(frozen=True)
@@ -557,6 +653,9 @@ class _Centre:
     type: str | None = None
     model_score: float = 0.0
     classical: bool = False  # the classical detector found a marker at this centre
+    sym180: float = 0.0  # symmetry of the image and the blob about the centre (learned.centre_choice)
+    sym90: float = 0.0
+    blob_sym: float = 0.0
 
 
 def _with_classical(c: _Centre, found: list[MarkerDetection], radius: float) -> _Centre:

@@ -10,7 +10,7 @@ import pytest
 
 from cpdetect.errors import InputError
 from learned.adapter import HMADetector
-from learned.instances import (INSTANCE_FEATURES, INSTANCE_FILE, InstanceModel, blob_features,
+from learned.instances import (INSTANCE_FEATURES, INSTANCE_FILE, SYMMETRY_FEATURES, InstanceModel, blob_features,
                                fit_instance_model, load_instance_model)
 from test_learned_detector import OracleBackend, blurred_noisy_marker, rendered
 
@@ -29,7 +29,8 @@ def _feats(**over) -> dict:
 
 def test_blob_features_are_the_documented_ones():
     f = blob_features(20.0, 0.9, 0.99, 0.7, 1.5, True, "seed", 0.001, 5.0, 0.0)
-    assert tuple(f) == INSTANCE_FEATURES
+    assert tuple(f) == INSTANCE_FEATURES + SYMMETRY_FEATURES
+    assert (f["sym180"], f["sym90"], f["blob_sym"]) == (0.0, 0.0, 0.0)  # not measured: no evidence
     assert f["log_radius"] == pytest.approx(math.log(20.0))
     assert f["solidity"] == 1.3 and f["offset"] == 2.0  # capped
     assert f["log_sigma"] == pytest.approx(math.log(0.01))  # floored
@@ -95,6 +96,17 @@ def test_fit_separates_what_the_features_separate():
     assert tp >= 190 and fp <= 10
     # the stored F1 is the marker-level one, with the 20 markers no blob reached counted as misses
     assert m.fitted["f1_at_threshold"] == pytest.approx(2 * tp / (2 * tp + fp + 220 - tp), abs=1e-4)
+    # the threshold: the highest on the grid whose F1 is within the tolerance of the best
+    def f1_at(t):
+        k = p >= t
+        tp_t, fp_t = int(np.sum(k & (y == 1))), int(np.sum(k & (y == 0)))
+        return 2 * tp_t / (2 * tp_t + fp_t + 220 - tp_t)
+
+    grid = [round(t, 2) for t in np.arange(0.2, 0.81, 0.02)]
+    top = max(f1_at(t) for t in grid)
+    assert m.threshold == max(t for t in grid if f1_at(t) >= top - 0.001)
+    strict = fit_instance_model(rows, labels, n_markers=220, f1_tolerance=0.0)
+    assert f1_at(strict.threshold) == pytest.approx(top) and strict.threshold <= m.threshold
     with pytest.raises(ValueError, match="both kinds"):
         fit_instance_model(rows[:50], [1] * 50, 50)
 

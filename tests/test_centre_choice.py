@@ -1,0 +1,137 @@
+"""The hma centre ranker: symmetry features on analytic images, its file, and that it decides."""
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from cpdetect.errors import InputError
+from learned.adapter import HMADetector
+from learned.centre_choice import (CANDIDATE_FEATURES, CentreRanker, blob_symmetry, load_centre_ranker,
+                                   point_symmetry)
+from learned.instances import INSTANCE_FEATURES, SYMMETRY_FEATURES, InstanceModel, blob_features, load_instance_model
+from test_learned_detector import SoftBackend, rendered
+
+
+def test_a_checker_centre_is_point_symmetric_and_turns_to_its_negative():
+    img, _, _ = rendered("square", center=(128.3, 127.6), radius=24.0, angle=0.4)
+    s180, s90 = point_symmetry(img, 128.3, 127.6, 24.0)
+    assert s180 > 0.9 and s90 < -0.8
+    # half a radius off the centre, on a dark/bright boundary: neither
+    off180, off90 = point_symmetry(img, 128.3 + 12.0 * math.cos(0.4), 127.6 + 12.0 * math.sin(0.4), 24.0)
+    assert off180 < 0.5 and off90 > -0.5
+    assert point_symmetry(np.full((50, 50), 90, np.uint8), 25.0, 25.0, 10.0) == (0.0, 0.0)  # flat: no evidence
+
+
+def test_blob_symmetry_of_a_disk_about_its_centre_and_half_a_radius_off():
+    disk = np.zeros((101, 101), bool)
+    yy, xx = np.mgrid[:101, :101]
+    disk[(xx - 50) ** 2 + (yy - 50) ** 2 <= 30 ** 2] = True
+    assert blob_symmetry(disk, 50.0, 50.0) > 0.99
+    # reflected through a point r/2 off the centre the disk moves by r: lens of two unit disks one
+    # radius apart over a disk, (2 / pi) (acos(1/2) - sqrt(3) / 4) = 0.391
+    assert 0.37 < blob_symmetry(disk, 65.0, 50.0) < 0.41
+    assert blob_symmetry(np.zeros((5, 5), bool), 2.0, 2.0) == 0.0
+
+
+def test_the_ranker_file_round_trips_and_refuses_an_instance_model(tmp_path):
+    n = len(CANDIDATE_FEATURES)
+    ranker = CentreRanker(mean=(0.1,) * n, std=(2.0,) * n, weights=tuple(np.linspace(-1, 1, n)), bias=0.3,
+                          features=CANDIDATE_FEATURES)
+    ranker.save(tmp_path)
+    back = load_centre_ranker(tmp_path)
+    feats = dict(zip(CANDIDATE_FEATURES, np.linspace(0.0, 2.0, n)))
+    assert isinstance(back, CentreRanker) and back.probability(feats) == pytest.approx(ranker.probability(feats))
+    assert load_instance_model(tmp_path) is None  # a ranker is not an instance model
+    k = len(INSTANCE_FEATURES)
+    instance = InstanceModel(mean=(0.0,) * k, std=(1.0,) * k, weights=(0.0,) * k, bias=0.0)
+    (tmp_path / "centre_rank.json").write_text(json.dumps(instance.to_dict()), encoding="utf-8")
+    with pytest.raises(InputError, match="centre_rank.json.*not a valid centre ranker"):
+        load_centre_ranker(tmp_path)
+    with pytest.raises(ValueError, match="centre ranker: unknown features"):
+        CentreRanker(mean=(0.0,), std=(1.0,), weights=(0.0,), bias=0.0, features=("mean_p",))
+
+
+def test_instance_features_gain_the_symmetry_ones_and_old_models_ignore_them():
+    f = blob_features(20.0, 0.9, 1.0, 0.8, 1.0, False, "verified", 0.05, 0.1, 0.9, 0.95, -0.9, 0.97)
+    assert set(f) == set(INSTANCE_FEATURES + SYMMETRY_FEATURES) and f["blob_sym"] == 0.97
+    k = len(INSTANCE_FEATURES)
+    old = InstanceModel(mean=(0.0,) * k, std=(1.0,) * k, weights=(1.0,) * k, bias=0.0)
+    assert old.features == INSTANCE_FEATURES
+    assert old.probability(f) == pytest.approx(old.probability({**f, "sym180": -1.0, "blob_sym": 0.0}))
+
+
+def _ranker(**weights) -> CentreRanker:
+    n = len(CANDIDATE_FEATURES)
+    return CentreRanker(mean=(0.0,) * n, std=(1.0,) * n, weights=tuple(weights.get(k, 0.0) for k in CANDIDATE_FEATURES),
+                        bias=0.0, features=CANDIDATE_FEATURES)
+
+
+def test_the_ranker_chooses_the_blob_centre():
+    img, mask, _ = rendered("square", center=(121.3, 133.6), radius=26.0, angle=0.5)
+    n = len(INSTANCE_FEATURES)
+    keep_all = InstanceModel(mean=(0.0,) * n, std=(1.0,) * n, weights=(0.0,) * n, bias=5.0, threshold=0.5)
+    soft = mask.astype(np.float32) * 0.97
+    chosen = {}
+    for name, ranker in (("symmetry", _ranker(sym180=3.0, sym90=-3.0, blob_sym=3.0)), ("far", _ranker(offset=5.0))):
+        det = HMADetector.with_backend(SoftBackend(soft), keep_all, ranker, scales=(1.0,), rank_stop=1.0)
+        pm = det.probability(img)
+        blobs, _ = det.candidates(img, pm.prob, pm.factor)
+        (blob,) = blobs
+        assert len(blob.options) >= 2  # the centroid's refinement and X-corner seeds on the outline
+        best = max(blob.options, key=lambda o: ranker.probability(o[1]))[0]
+        assert (blob.centre.x, blob.centre.y) == (best.x, best.y)
+        assert all(score == ranker.probability(feats) for _, feats, score in blob.options)
+        assert blob.features["sym180"] == best.sym180 and blob.features["blob_sym"] == best.blob_sym
+        chosen[name] = blob.centre
+    assert math.hypot(chosen["symmetry"].x - 121.3, chosen["symmetry"].y - 133.6) < 0.15
+    assert math.hypot(chosen["far"].x - 121.3, chosen["far"].y - 133.6) > 5.0
+    # by default the search stops at the first candidate scored >= rank_stop: here the centroid's
+    sure = _ranker(sym180=3.0, sym90=-3.0, blob_sym=3.0)
+    det = HMADetector.with_backend(SoftBackend(soft), keep_all, sure, scales=(1.0,))
+    pm = det.probability(img)
+    (blob,), _ = det.candidates(img, pm.prob, pm.factor)
+    assert len(blob.options) == 1 and blob.options[0][2] >= 0.9
+    assert (blob.centre.x, blob.centre.y) == (chosen["symmetry"].x, chosen["symmetry"].y)
+    # "none" (or no instance model) keeps the rules: the first verified centre
+    rules = HMADetector.with_backend(SoftBackend(soft), keep_all, _ranker(offset=5.0), scales=(1.0,),
+                                     centre_ranker="none").detect(img).detections
+    assert len(rules) == 1 and math.hypot(rules[0].x - 121.3, rules[0].y - 133.6) < 0.15
+    no_model = HMADetector.with_backend(SoftBackend(soft), None, _ranker(offset=5.0), scales=(1.0,))
+    assert no_model.centre_ranker is None
+
+
+def test_ranker_settings_are_checked():
+    from cpdetect import get_detector
+    from cpdetect.errors import UsageError
+
+    with pytest.raises(UsageError, match="centre_ranker"):
+        get_detector("hma", centre_ranker="best")
+    with pytest.raises(UsageError, match="rank_stop"):
+        get_detector("hma", rank_stop=0.0)
+    with pytest.raises(UsageError, match="rank_seeds"):
+        get_detector("hma", rank_seeds=-1)
+
+
+def test_fitting_the_ranker_learns_what_separates_the_candidates():
+    from learned.centre_choice import candidate_features, fit_centre_ranker
+
+    rng = np.random.default_rng(3)
+    rows, labels = [], []
+    for k in range(200):
+        right = k % 4 == 0
+        s180 = rng.normal(0.9 if right else -0.1, 0.1)
+        rows.append(candidate_features(rng.uniform(0.02, 0.5), rng.uniform(0, 1.5), rng.random() < 0.5, rng.random(),
+                                       rng.uniform(0, 2), rng.random(), s180, -s180, k % 7 == 0, rng.random()))
+        labels.append(int(right))
+    m = fit_centre_ranker(rows, labels, fitted={"data": "synthetic"})
+    w = dict(zip(m.features, m.weights))
+    assert w["sym180"] > 1.0 and w["sym90"] < -1.0 and abs(w["seed_strength"]) < 0.5
+    assert m.fitted["candidates"] == 200 and m.fitted["positives"] == 50
+    ranked = sorted(range(200), key=lambda i: -m.probability(rows[i]))
+    assert sum(labels[i] for i in ranked[:50]) >= 48
+    with pytest.raises(ValueError, match="20 candidates"):
+        fit_centre_ranker(rows[:10], labels[:10])
