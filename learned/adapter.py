@@ -444,7 +444,8 @@ class HMADetector:
                         keep = score >= cut or b.centre.classical
                     cx, cy, sigma, mtype = b.centre.x, b.centre.y, b.centre.sigma, b.centre.type
                     if keep and s.min_centre_reach > 0:
-                        keep = centre_reach(gray, cx, cy, b.radius) >= s.min_centre_reach
+                        reach = b.centre.reach
+                        keep = (centre_reach(gray, cx, cy, b.radius) if reach is None else reach) >= s.min_centre_reach
             if not keep:
                 if unsure:
                     rejected.append(b.label)
@@ -591,10 +592,11 @@ class HMADetector:
             sharp = r.sigma_px <= s.max_sigma_px
             kind = "verified" if v is not None else ("centroid" if i == 0 and sharp else "seed")
             c = _Centre(float(r.x), float(r.y), sigma, kind, v[0] if v is not None and s.type_by == "model" else None,
-                        v[2] if v is not None else 0.0, sym180=sym180, sym90=sym90, blob_sym=bsym)
+                        v[2] if v is not None else 0.0, sym180=sym180, sym90=sym90, blob_sym=bsym,
+                        reach=centre_reach(gray, r.x, r.y, radius))
             offset = math.hypot(r.x - centroid[0], r.y - centroid[1]) / radius
-            feats = candidate_features(sigma, offset, v is not None, c.model_score,
-                                       centre_reach(gray, r.x, r.y, radius), bsym, sym180, sym90, i == 0, strength)
+            feats = candidate_features(sigma, offset, v is not None, c.model_score, c.reach, bsym, sym180, sym90,
+                                       i == 0, strength)
             score = self.centre_ranker.probability(feats) if self.centre_ranker is not None else 0.0
             out.append((c, feats, score))
             if score >= s.rank_stop:
@@ -656,6 +658,7 @@ class _Centre:
     sym180: float = 0.0  # symmetry of the image and the blob about the centre (learned.centre_choice)
     sym90: float = 0.0
     blob_sym: float = 0.0
+    reach: float | None = None  # centre_reach at this centre when already measured (the ranker's candidates)
 
 
 def _with_classical(c: _Centre, found: list[MarkerDetection], radius: float) -> _Centre:
