@@ -14,8 +14,8 @@ Steps for one image (uint8 gray or BGR; a path is read as gray):
    occlusion and at the image border). With ``classical_seeds`` the classical detector's markers on
    the component are tried first, and a blob whose centre one of them confirms is kept (a fresh
    300-image test-split set: instance F1 0.928 -> 0.934). With a centre ranker beside the weights
-   (``centre_rank.json``, :mod:`learned.centre_choice`) every seed (up to ``rank_seeds``) is refined
-   instead and the candidate it scores highest from the refinement's evidence and the symmetry of
+   (``centre_rank.json``, :mod:`learned.centre_choice`) every seed (up to ``rank_seeds``, the most
+   point-symmetric of the ``seed_pool`` strongest X-corners) is refined instead and the candidate it scores highest from the refinement's evidence and the symmetry of
    the image and the blob about it wins;
    Blobs that yield no marker, and that the network is not sure of (mean P < ``clear_rejected_below``),
    are cleared from the probability map the detector returns: louvers, window crosses, dark arches;
@@ -115,8 +115,22 @@ class HMASettings:
     of mean P 0.61-0.84 beside the markers' 0.97-0.99: their centres took 1.80 s with 8 seeds
     everywhere, 0.84 s with 3, against 0.80 s for the rules), while 10 of the 15 blobs of the
     train-split fitting data whose right centre came from a seed past the third had mean P >= 0.85.
-    rank_stop: the seeds are refined in order (centroid, then the strongest X-corners) and the
+    rank_stop: the seeds are refined in order (centroid, then the X-corners) and the
     search stops at the first candidate the ranker scores at least this (1 = refine them all).
+    seed_pool: with the ranker, this many of the strongest X-corners of a blob are looked at, and
+    those refined are the most point-symmetric of them (the image turned 180 degrees about the seed
+    like itself, turned 90 like its negative: sym180 - sym90 of
+    :func:`learned.centre_choice.point_symmetry`, cheap beside a refinement); 0 = the strongest
+    ones. A low-contrast marker's centre is often weaker as an X-corner than the corners its
+    outline makes with a bright background: in one dev909 image a square marker of radius 57 px
+    and contrast 40 had its centre ninth among the blob's X-corners, after its outline's corners
+    against the sky, and was lost. On the ranker's train-split fitting images (dev808 + dev909, 1,266
+    markers) 24 took the markers found from 1,147 to 1,155 and the false ones from 19 to 18; on the
+    fresh test-split sets seeds 9000 / 9100 / 9200, 561 / 586 / 581 found -> 561 / 587 / 583 and
+    7 / 7 / 3 false -> 8 / 7 / 3 (the new false one a crossing of two grass paths the network
+    holds for a marker). On the textured 45 MP bench image it costs 0.14 s (2.35 -> 2.49 s, same
+    markers); applied to the blobs of mean P >= rank_sure_mean_p only it cost nothing there but
+    found 1,150 of the 1,266 and on the test sets nothing more.
     min_centre_reach: drop a refined centre where the four sectors do not meet
     (:func:`cpdetect.centre_reach.centre_reach` below this; 0 keeps every one), the classical
     detector's cut.
@@ -162,6 +176,7 @@ class HMASettings:
     rank_seeds_unsure: int = 3
     rank_sure_mean_p: float = 0.85
     rank_stop: float = 0.9
+    seed_pool: int = 24
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "scales", tuple(float(s) for s in self.scales))
@@ -177,8 +192,8 @@ class HMASettings:
             raise ValueError(f"backend must be auto, torch or opencv, got {self.backend!r}")
         if self.centre_ranker not in ("auto", "none"):
             raise ValueError(f"centre_ranker must be auto or none, got {self.centre_ranker!r}")
-        if min(self.rank_seeds, self.rank_seeds_unsure) < 0 or not 0.0 < self.rank_stop <= 1.0:
-            raise ValueError("need rank_seeds, rank_seeds_unsure >= 0 and 0 < rank_stop <= 1")
+        if min(self.rank_seeds, self.rank_seeds_unsure, self.seed_pool) < 0 or not 0.0 < self.rank_stop <= 1.0:
+            raise ValueError("need rank_seeds, rank_seeds_unsure, seed_pool >= 0 and 0 < rank_stop <= 1")
         if not 0.0 < self.threshold < 1.0:
             raise ValueError("threshold must be in (0, 1)")
         if self.max_side is not None and self.max_side < 64:
@@ -399,7 +414,8 @@ class HMADetector:
             if self.centre_ranker is not None or self.collect_options:
                 sure = blob.mean_p >= s.rank_sure_mean_p or self.collect_options
                 blob.options = self._centre_options(gray, labels, f, k, blob.bbox, radius, blob.centroid, extra,
-                                                    s.rank_seeds if sure else min(s.rank_seeds, s.rank_seeds_unsure))
+                                                    s.rank_seeds if sure else min(s.rank_seeds, s.rank_seeds_unsure),
+                                                    s.seed_pool)
             if self.centre_ranker is not None:
                 c = max(blob.options, key=lambda o: o[2])[0] if blob.options else None
             else:
@@ -553,10 +569,10 @@ class HMADetector:
         return other if loose else None
 
     def _centre_options(self, gray, labels, f, k, bbox, radius, centroid, extra: list[tuple[float, float]] = (),
-                        n_seeds: int = 8) -> list[tuple["_Centre", dict, float]]:
+                        n_seeds: int = 8, pool: int = 0) -> list[tuple["_Centre", dict, float]]:
         """The centre candidates of component ``k`` for the ranker: the centroid, the classical
-        detector's markers on it (``extra``) and up to ``n_seeds`` X-corner seeds, each refined
-        (kept when ok with sigma <= max(max_sigma_verified_px, max_sigma_seed_px), duplicates within
+        detector's markers on it (``extra``) and up to ``n_seeds`` X-corner seeds (the most point-
+        symmetric of the ``pool`` strongest when ``pool`` exceeds ``n_seeds``), each refined (kept when ok with sigma <= max(max_sigma_verified_px, max_sigma_seed_px), duplicates within
         a pixel dropped), with its :func:`learned.centre_choice.candidate_features` and the ranker's
         score (0 without one). With a ranker, stops after the first scored at least ``rank_stop``."""
         from cpdetect.classical import verify_marker_at
@@ -569,8 +585,10 @@ class HMADetector:
         x0, y0, bw, bh = bbox
         comp = labels[y0:y0 + bh, x0:x0 + bw] == k
         inside, box = _seed_region(labels, f, k, bbox, radius)
-        xs = xcorner_seeds(gray, box, radius, inside, n_seeds)
+        xs = xcorner_seeds(gray, box, radius, inside, max(n_seeds, pool))
         strongest = max([c for _, _, c in xs], default=1.0) or 1.0
+        if pool and len(xs) > n_seeds:
+            xs = _most_symmetric(gray, xs, radius, n_seeds)
         seeds = [(centroid[0], centroid[1], 0.0)]
         if extra:
             ex = np.array(extra, float)
@@ -602,6 +620,18 @@ class HMADetector:
             if score >= s.rank_stop:
                 break
         return out
+
+
+def _most_symmetric(gray: np.ndarray, seeds: list[tuple[float, float, float]], radius: float,
+                    n: int) -> list[tuple[float, float, float]]:
+    """The ``n`` seeds (x, y, c_hat) about which the image is most like an X-corner, most first:
+    sym180 - sym90 of :func:`learned.centre_choice.point_symmetry` (about 1.8 at a marker's centre,
+    near 0 at a corner of its outline); ties keep the stronger seed first."""
+    from .centre_choice import point_symmetry
+
+    q = [np.subtract(*point_symmetry(gray, x, y, radius)) for x, y, _ in seeds]
+    order = sorted(range(len(seeds)), key=lambda i: (-q[i], -seeds[i][2]))
+    return [seeds[i] for i in order[:n]]
 
 
 def _seed_region(labels: np.ndarray, f: float, k: int, bbox: tuple[int, int, int, int], radius: float):

@@ -104,6 +104,23 @@ def test_the_ranker_chooses_the_blob_centre():
     assert no_model.centre_ranker is None
 
 
+def test_the_most_point_symmetric_seeds_are_refined_first():
+    from learned.adapter import _most_symmetric
+
+    cx, cy, r, a = 121.3, 133.6, 26.0, 0.5
+    img, _, _ = rendered("square", center=(cx, cy), radius=r, angle=a)
+    # the centre as the weakest seed among points of the outline and the sectors, all stronger
+    others = [(cx + f * r * math.cos(a + t), cy + f * r * math.sin(a + t), 50.0 - k)
+              for k, (f, t) in enumerate([(0.95, 0.0), (0.95, 1.2), (1.0, 0.785), (0.5, 0.3), (0.6, 2.4), (0.9, 3.9)])]
+    seeds = others + [(cx + 0.3, cy - 0.2, 5.0)]
+    picked = _most_symmetric(img, seeds, r, 3)
+    assert len(picked) == 3 and picked[0] == seeds[-1]
+    q = [np.subtract(*point_symmetry(img, x, y, r)) for x, y, _ in seeds]
+    assert q[-1] > 1.6 and max(q[:-1]) < 1.0
+    everything = _most_symmetric(img, seeds, r, 10)
+    assert sorted(everything) == sorted(seeds)  # all of them when n exceeds the pool, none twice
+
+
 def test_ranker_settings_are_checked():
     from cpdetect import get_detector
     from cpdetect.errors import UsageError
@@ -114,6 +131,8 @@ def test_ranker_settings_are_checked():
         get_detector("hma", rank_stop=0.0)
     with pytest.raises(UsageError, match="rank_seeds"):
         get_detector("hma", rank_seeds=-1)
+    with pytest.raises(UsageError, match="seed_pool"):
+        get_detector("hma", seed_pool=-1)
 
 
 def test_fitting_the_ranker_learns_what_separates_the_candidates():
