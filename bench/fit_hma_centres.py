@@ -80,6 +80,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=12)
     ap.add_argument("--out", default=str(RESULTS))
     ap.add_argument("--dry-run", action="store_true", help="fit and report, but do not write the model file")
+    ap.add_argument("--seed-pool", type=int, default=None,
+                    help="the detector's seed_pool setting (default: the detector's default)")
     args = ap.parse_args(argv)
 
     from learned.adapter import HMADetector, default_model_dir
@@ -87,7 +89,10 @@ def main(argv=None) -> int:
 
     model_dir = Path(args.model_dir) if args.model_dir else default_model_dir()
     t0 = time.time()
-    det = HMADetector(model_dir=str(model_dir), centre_ranker="none")
+    # the seeds the candidates are drawn from, as the detector will draw them (the shipped models of
+    # stop 25 were fitted before the seed pool existed: --seed-pool 0 draws them that way)
+    pool = {} if args.seed_pool is None else {"seed_pool": args.seed_pool}
+    det = HMADetector(model_dir=str(model_dir), centre_ranker="none", **pool)
     det.collect_options = True
     rows, labels, blob_of, rules_right, roots = [], [], [], [], []
     for data in args.data or [None]:

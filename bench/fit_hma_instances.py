@@ -112,6 +112,8 @@ def main(argv=None) -> int:
                                                   "default: DATA/probability_maps; one --data only)")
     ap.add_argument("--out", default=str(RESULTS))
     ap.add_argument("--dry-run", action="store_true", help="fit and report, but do not write the model file")
+    ap.add_argument("--seed-pool", type=int, default=None,
+                    help="the detector's seed_pool setting (default: the detector's default)")
     ap.add_argument("--features", choices=("base", "all"), default="base",
                     help="base: the twelve features of learned.instances.INSTANCE_FEATURES; all: with the "
                          "symmetry features of the chosen centre (learned.centre_choice)")
@@ -125,7 +127,10 @@ def main(argv=None) -> int:
     if args.cache and len(args.data or []) > 1:
         ap.error("--cache needs a single --data (each dataset keeps its maps in DATA/probability_maps)")
     t0 = time.time()
-    det = HMADetector(model_dir=str(model_dir), instance_model="none")
+    # the seeds the candidates are drawn from, as the detector will draw them (the shipped models of
+    # stop 25 were fitted before the seed pool existed: --seed-pool 0 draws them that way)
+    pool = {} if args.seed_pool is None else {"seed_pool": args.seed_pool}
+    det = HMADetector(model_dir=str(model_dir), instance_model="none", **pool)
     # the blobs' centres as the detector will choose them: by the centre ranker when there is one
     det.centre_ranker = load_centre_ranker(model_dir)
     features = INSTANCE_FEATURES + (SYMMETRY_FEATURES if args.features == "all" else ())
