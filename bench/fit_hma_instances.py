@@ -129,6 +129,8 @@ def main(argv=None) -> int:
     t0 = time.time()
     # the seeds the candidates are drawn from, as the detector will draw them (the shipped models of
     # stop 25 were fitted before the seed pool existed: --seed-pool 0 draws them that way)
+    if args.seed_pool is not None and args.seed_pool < 0:
+        ap.error(f"--seed-pool must be >= 0, got {args.seed_pool}")
     pool = {} if args.seed_pool is None else {"seed_pool": args.seed_pool}
     det = HMADetector(model_dir=str(model_dir), instance_model="none", **pool)
     # the blobs' centres as the detector will choose them: by the centre ranker when there is one
