@@ -15,8 +15,9 @@ Steps for one image (uint8 gray or BGR; a path is read as gray):
    the component are tried first, and a blob whose centre one of them confirms is kept (a fresh
    300-image test-split set: instance F1 0.928 -> 0.934). With a centre ranker beside the weights
    (``centre_rank.json``, :mod:`learned.centre_choice`) every seed (up to ``rank_seeds``, the most
-   point-symmetric of the ``seed_pool`` strongest X-corners) is refined instead and the candidate it scores highest from the refinement's evidence and the symmetry of
-   the image and the blob about it wins;
+   point-symmetric of the ``seed_pool`` strongest X-corners) is refined instead, and the candidate
+   it scores highest from the refinement's evidence and the symmetry of the image and the blob
+   about it wins;
    Blobs that yield no marker, and that the network is not sure of (mean P < ``clear_rejected_below``),
    are cleared from the probability map the detector returns: louvers, window crosses, dark arches;
 4. keep or drop: with an instance model beside the weights (``instance_score.json``, see
@@ -572,8 +573,9 @@ class HMADetector:
                         n_seeds: int = 8, pool: int = 0) -> list[tuple["_Centre", dict, float]]:
         """The centre candidates of component ``k`` for the ranker: the centroid, the classical
         detector's markers on it (``extra``) and up to ``n_seeds`` X-corner seeds (the most point-
-        symmetric of the ``pool`` strongest when ``pool`` exceeds ``n_seeds``), each refined (kept when ok with sigma <= max(max_sigma_verified_px, max_sigma_seed_px), duplicates within
-        a pixel dropped), with its :func:`learned.centre_choice.candidate_features` and the ranker's
+        symmetric of the ``pool`` strongest when ``pool`` exceeds ``n_seeds``), each refined (kept
+        when ok with sigma <= max(max_sigma_verified_px, max_sigma_seed_px), duplicates within a
+        pixel dropped), with its :func:`learned.centre_choice.candidate_features` and the ranker's
         score (0 without one). With a ranker, stops after the first scored at least ``rank_stop``."""
         from cpdetect.classical import verify_marker_at
         from cpdetect.refine import refine_center_coarse_to_fine
