@@ -182,9 +182,13 @@ class CropDataset:
         return pair
 
     def __getitem__(self, i: int):
+        return self.draw(self.epoch, i)
+
+    def draw(self, epoch: int, i: int):
+        """Item ``i`` of epoch ``epoch`` (what ``__getitem__`` gives after ``set_epoch(epoch)``)."""
         import torch
 
-        rng = np.random.default_rng([self.seed, self.epoch, int(i)])
+        rng = np.random.default_rng([self.seed, int(epoch), int(i)])
         k = int(rng.integers(len(self.samples)))
         img, mask = self._load(k)
         x, lab = augment(img, mask, self.samples[k].centers, self.cfg, rng)

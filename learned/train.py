@@ -50,7 +50,8 @@ class TrainConfig:
     as (1 - it / total) ** poly. rmi_scope: covariances of the RMI term over the batch or per image
     (:class:`learned.rmi.HMALossWeights`). val_frac: fraction of the images held out
     (ignored when ``val_data`` is given); val_crops: fixed validation crops. checkpoint_minutes: time
-    between checkpoints inside an epoch.
+    between checkpoints inside an epoch. workers: processes that draw the crops (0 = the training
+    process itself); the batches, and so the weights, are the same for any number.
     """
 
     data: str
@@ -75,6 +76,7 @@ class TrainConfig:
     seed: int = 0
     device: str = "auto"
     threads: int = 2
+    workers: int = 0
     checkpoint_minutes: float = 5.0
     log_every: int = 20
     channels_last: bool = True
@@ -185,6 +187,53 @@ def evaluate(model: HMAModel, batches: Sequence[tuple[torch.Tensor, torch.Tensor
 
 def _collate(items: list[tuple[torch.Tensor, torch.Tensor]]) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.stack([a for a, _ in items]), torch.stack([b for _, b in items])
+
+
+class _RunCrops:
+    """The crops of a whole run as one sequence: item ``g`` is crop ``g % batch`` of iteration
+    ``g // batch``, i.e. item ``(it % iters_per_epoch) * batch + g % batch`` of epoch
+    ``it // iters_per_epoch``, exactly what the serial loop draws."""
+
+    def __init__(self, crops: CropDataset, iters_per_epoch: int, batch: int):
+        self.crops, self.iters_per_epoch, self.batch = crops, iters_per_epoch, batch
+
+    def __getitem__(self, g: int):
+        it, j = divmod(int(g), self.batch)
+        epoch, b = divmod(it, self.iters_per_epoch)
+        return self.crops.draw(epoch, b * self.batch + j)
+
+    def collate(self, gs: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        return _collate([self[g] for g in gs])
+
+
+def _quiet_worker(_: int) -> None:
+    # each worker draws whole crops; nested thread pools would only fight over the cores
+    import cv2
+
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+
+
+def batch_stream(crops: CropDataset, iters_per_epoch: int, batch: int, start: int, stop: int, workers: int = 0,
+                 pin_memory: bool = False):
+    """Batches (x, y) of iterations ``start`` .. ``stop - 1``, drawn in ``workers`` processes (0 = here).
+
+    The same batches for any ``workers``: crop j of iteration it is item ``(it % iters_per_epoch) * batch + j``
+    of epoch ``it // iters_per_epoch`` of ``crops``.
+    """
+    run = _RunCrops(crops, iters_per_epoch, batch)
+    if workers <= 0:
+        for it in range(start, stop):
+            yield _collate([run[it * batch + j] for j in range(batch)])
+        return
+    loader = torch.utils.data.DataLoader(
+        range(start * batch, stop * batch), batch_size=batch, shuffle=False, num_workers=workers,
+        collate_fn=run.collate, worker_init_fn=_quiet_worker, pin_memory=pin_memory, prefetch_factor=4,
+        # its own generator: the loader's worker seeds must not draw on torch's global one (dropout)
+        generator=torch.Generator(),
+        # fresh interpreters: a fork of a process whose OpenMP / OpenCV pools have run can deadlock
+        multiprocessing_context="spawn")
+    yield from loader
 
 
 def _append_log(path: Path, record: dict) -> None:
@@ -302,11 +351,12 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
         last_val = None
         run_loss: list[float] = []
         t_iter = time.time()
+        batches = batch_stream(train_ds, cfg.iters_per_epoch, cfg.batch, it, total, cfg.workers,
+                               pin_memory=device.type == "cuda")
         while it < total and stop.signum is None:
-            epoch, b = divmod(it, cfg.iters_per_epoch)
-            train_ds.set_epoch(epoch)
-            x, y = _collate([train_ds[b * cfg.batch + j] for j in range(cfg.batch)])
-            x, y = x.to(device), y.to(device)
+            epoch = it // cfg.iters_per_epoch
+            x, y = next(batches)
+            x, y = x.to(device, non_blocking=True), y.to(device, non_blocking=True)
             if cfg.channels_last:
                 x = x.contiguous(memory_format=torch.channels_last)
             lr = base_lr * (1.0 - it / total) ** cfg.poly
@@ -349,6 +399,7 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
             if end_of_epoch or time.time() - last_ckpt > 60.0 * cfg.checkpoint_minutes:
                 _save_checkpoint(ckpt_path, model, opt, it, best, cfg)
                 last_ckpt = time.time()
+        batches.close()  # ends the worker processes, if any
     if bar is not None:
         bar.close()
     if stop.signum is not None:

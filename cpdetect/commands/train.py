@@ -38,6 +38,9 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda, cuda:1 ...")
     p.add_argument("--threads", type=int, default=2, help="CPU threads (default 2)")
+    p.add_argument("--workers", type=int, default=0,
+                   help="processes that draw the augmented crops (default 0: the training process); "
+                        "the same batches for any number, so the same weights")
     p.add_argument("--checkpoint-minutes", type=float, default=5.0, help="minutes between checkpoints")
     p.add_argument("--resume", action="store_true", help="continue from MODELDIR/checkpoint.pt")
     p.set_defaults(func=run)
@@ -55,6 +58,8 @@ def run(args) -> int:
     for name in ("epochs", "iters_per_epoch", "batch", "crop", "threads"):
         if getattr(args, name) < 1:
             raise UsageError(f"--{name.replace('_', '-')} must be >= 1")
+    if args.workers < 0:
+        raise UsageError("--workers must be >= 0")
     if args.lr is not None and not args.lr > 0:
         raise UsageError("--lr must be positive")
     if not 0 <= args.val_frac < 1:
@@ -67,7 +72,7 @@ def run(args) -> int:
                       freeze_backbone=args.freeze_backbone, epochs=args.epochs,
                       iters_per_epoch=args.iters_per_epoch, batch=args.batch, crop=args.crop, optimizer=args.optimizer, rmi_scope=args.rmi_scope, lr=args.lr,
                       val_frac=args.val_frac, seed=args.seed, device=args.device, threads=args.threads,
-                      checkpoint_minutes=args.checkpoint_minutes)
+                      workers=args.workers, checkpoint_minutes=args.checkpoint_minutes)
     try:
         res = train(cfg, resume=args.resume)
     except ValueError as exc:
