@@ -512,6 +512,9 @@ def test_cli_train_resume_export_and_detect(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "missing" in err[0]
     assert main(["train", "--data", str(data), "--out", str(out), "--crop", "100"]) == 2
+    capsys.readouterr()
+    assert main(["train", "--data", str(data), "--out", str(tmp_path / "w"), "--workers", "-1"]) == 2
+    assert "--workers must be >= 0" in capsys.readouterr().err and not (tmp_path / "w").exists()
     # bad starts name the problem and leave no folder behind
     capsys.readouterr()
     assert main(["train", "--data", str(data), "--out", str(tmp_path / "new"), "--init", str(tmp_path / "nope")]) == 2
