@@ -202,8 +202,32 @@ class _RunCrops:
         epoch, b = divmod(it, self.iters_per_epoch)
         return self.crops.draw(epoch, b * self.batch + j)
 
-    def collate(self, gs: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
-        return _collate([self[g] for g in gs])
+    def collate(self, gs: list[int]):
+        """The batch of items ``gs``; in a worker, a bad image comes back as a :class:`_CropError`
+        (the loader would re-raise it wrapped in the worker's traceback, not as one line)."""
+        from cpdetect.errors import CpdetectError
+
+        try:
+            return _collate([self[g] for g in gs])
+        except CpdetectError as exc:
+            return _CropError(type(exc).__name__, exc.message, exc.path, exc.line, exc.exit_code)
+
+
+@dataclass(frozen=True)
+class _CropError:
+    """A :class:`cpdetect.errors.CpdetectError` raised in a crop worker, carried to the training process."""
+
+    kind: str
+    message: str
+    path: str | None
+    line: int | None
+    exit_code: int
+
+    def error(self) -> Exception:
+        from cpdetect import errors
+
+        cls = getattr(errors, self.kind, errors.CpdetectError)
+        return cls(self.message, self.path, self.line, self.exit_code)
 
 
 def _quiet_worker(_: int) -> None:
@@ -233,7 +257,10 @@ def batch_stream(crops: CropDataset, iters_per_epoch: int, batch: int, start: in
         generator=torch.Generator(),
         # fresh interpreters: a fork of a process whose OpenMP / OpenCV pools have run can deadlock
         multiprocessing_context="spawn")
-    yield from loader
+    for batch in loader:
+        if isinstance(batch, _CropError):
+            raise batch.error()
+        yield batch
 
 
 def _append_log(path: Path, record: dict) -> None:

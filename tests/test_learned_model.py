@@ -386,6 +386,16 @@ def test_crop_workers_draw_the_serial_batches_and_weights(tmp_path):
     assert r0.iterations == r2.iterations == 4
     w0, w2 = _weights(tmp_path / "a"), _weights(tmp_path / "b")
     assert all(torch.equal(w0[k], w2[k]) for k in w0)
+    # a bad image met by a worker is the same one-line error as in the training process
+    from learned.data import Sample
+
+    bad = tmp_path / "bad.jpg"
+    bad.write_bytes(b"not a jpeg")
+    broken = CropDataset([Sample(bad, bad, np.zeros((0, 2)), np.zeros(0))], AugmentConfig(crop=64), 2, seed=5)
+    for workers in (0, 2):
+        with pytest.raises(InputError) as exc:
+            list(batch_stream(broken, 1, 2, start=0, stop=1, workers=workers))
+        assert str(exc.value) == f"{bad}: not an image (unrecognised format)"
 
 
 def test_a_signal_stops_training_with_a_checkpoint_at_that_iteration(tmp_path):
