@@ -554,11 +554,19 @@ _WORKER: dict = {}
 
 def _worker_init(seed: int, opt: SynthImageOptions, out: str) -> None:
     cv2.setNumThreads(1)
-    _WORKER.update(seed=seed, opt=opt, out=Path(out), lib=BackgroundLibrary(list_backgrounds(opt.split)))
+    _WORKER.clear()
+    try:
+        _WORKER.update(seed=seed, opt=opt, out=Path(out), lib=BackgroundLibrary(list_backgrounds(opt.split)))
+    except Exception as exc:  # noqa: BLE001 - handed to the first task, see below
+        # an initializer that raises makes multiprocessing.Pool start new workers forever (a hang);
+        # the first task raises it instead, and the error reaches the caller
+        _WORKER["error"] = exc
 
 
 def _worker_make(index: int) -> dict:
     w = _WORKER
+    if "error" in w:
+        raise w["error"]
     return write_image(w["out"], index, generate_image(index, w["seed"], w["opt"], w["lib"]), w["opt"].image_format)
 
 
@@ -587,6 +595,7 @@ def write_synth_images(out: str | os.PathLike, n: int, seed: int, opt: SynthImag
     else:
         import multiprocessing as mp
 
+        list_backgrounds(opt.split)  # missing or broken backgrounds: the error here, before any worker
         # spawn, not fork: forking a process whose OpenCV/OpenMP thread pools already run can deadlock
         ctx = mp.get_context("spawn")
         with ctx.Pool(workers, initializer=_worker_init, initargs=(seed, opt, str(out))) as pool:

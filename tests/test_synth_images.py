@@ -249,3 +249,23 @@ def test_rerun_replaces_markers_json_last(tmp_path):
     assert not (tmp_path / "markers.json").exists()  # an interrupted run leaves no stale truth
     write_synth_images(tmp_path, 3, 0, SynthImageOptions(width=160, height=120))
     assert (tmp_path / "markers.json").read_bytes() == first
+
+
+def test_workers_report_broken_backgrounds_instead_of_hanging(tmp_path, monkeypatch):
+    """multiprocessing.Pool starts new workers forever when its initializer raises; a worker that
+    cannot load the backgrounds hands the error to its first task instead, and with --workers the
+    backgrounds are checked before any worker starts."""
+    import cpdetect.synth_images as S
+    from cpdetect.errors import InputError
+
+    def broken(split=None, folder=None):
+        raise InputError("no backgrounds of this split", "backgrounds/MANIFEST.tsv")
+
+    monkeypatch.setattr(S, "list_backgrounds", broken)
+    S._worker_init(1, SynthImageOptions(), str(tmp_path))
+    with pytest.raises(InputError, match="no backgrounds of this split"):
+        S._worker_make(0)
+    with pytest.raises(InputError, match="MANIFEST.tsv: no backgrounds of this split"):
+        write_synth_images(tmp_path / "out", 8, 1, workers=2)
+    assert not (tmp_path / "out" / "markers.json").exists()
+    S._WORKER.clear()
