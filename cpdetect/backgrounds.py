@@ -16,12 +16,12 @@ import csv
 import hashlib
 import os
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError, UsageError
+from .package_data import data_path
 
 SPLITS = ("train", "test", "all")
 TEST_FRACTION = 0.2
@@ -42,7 +42,7 @@ class Background:
 
 def default_folder() -> Path:
     """The shipped backgrounds folder (works in a checkout and after ``pip install``)."""
-    return Path(str(resources.files("cpdetect.data") / "backgrounds"))
+    return data_path("backgrounds")
 
 
 def _name_hash(name: str) -> str:

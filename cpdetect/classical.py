@@ -459,11 +459,10 @@ SCORE_FILE = "marker_score.json"
 @lru_cache(maxsize=1)
 def score_model():
     """The marker score's tree ensemble (read once; package data)."""
-    from importlib import resources
-
+    from .package_data import data_path
     from .tree_ensemble import load_tree_ensemble
 
-    ens = load_tree_ensemble(resources.files("cpdetect.data") / SCORE_FILE)
+    ens = load_tree_ensemble(data_path(SCORE_FILE))
     if ens.features != SCORE_FEATURES:
         raise ValueError(f"{SCORE_FILE}: features {ens.features} differ from the detector's {SCORE_FEATURES}")
     return ens

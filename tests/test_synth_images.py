@@ -269,3 +269,18 @@ def test_workers_report_broken_backgrounds_instead_of_hanging(tmp_path, monkeypa
         write_synth_images(tmp_path / "out", 8, 1, workers=2)
     assert not (tmp_path / "out" / "markers.json").exists()
     S._WORKER.clear()
+
+
+def test_package_data_is_found_without_an_install(monkeypatch):
+    """A checkout on PYTHONPATH has no ``cpdetect.data`` package: data/ beside cpdetect/ stands in."""
+    import cpdetect.package_data as P
+
+    installed = P.data_path("backgrounds")
+
+    def no_package(name):
+        raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+
+    monkeypatch.setattr(P.resources, "files", no_package)
+    fallback = P.data_path("backgrounds")
+    assert fallback.resolve() == installed.resolve()
+    assert (fallback / "MANIFEST.tsv").is_file() and P.data_path("marker_score.json").is_file()
