@@ -159,15 +159,15 @@ def test_blobs_the_network_is_far_from_sure_of_are_dropped_unrefined_with_an_ins
 
 def test_small_images_get_the_extra_scale_within_max_side():
     det = HMADetector.with_backend(OracleBackend(np.zeros((4, 4))))
-    assert det.scales_for(640, 480) == (0.5, 1.0, 2.0)
-    assert det.scales_for(1024, 700) == (0.5, 1.0, 2.0)
+    assert det.scales_for(640, 480) == (0.5, 1.0, 1.5, 2.0)
+    assert det.scales_for(1024, 700) == (0.5, 1.0, 1.5, 2.0)
     assert det.scales_for(1025, 700) == (0.5, 1.0)
     assert det.scales_for(8192, 5460) == (0.5, 1.0)
     off = HMADetector.with_backend(OracleBackend(np.zeros((4, 4))), small_scales=None)
     assert off.scales_for(640, 480) == (0.5, 1.0)
     img, mask, _ = rendered("circle", center=(100.3, 90.8), radius=20.0)
     res = HMADetector.with_backend(OracleBackend(mask)).detect(img)
-    assert res.extras["scales"] == [0.5, 1.0, 2.0]
+    assert res.extras["scales"] == [0.5, 1.0, 1.5, 2.0]
     assert len(res.detections) == 1 and abs(res.detections[0].x - 100.3) < 0.15
 
 
