@@ -82,14 +82,16 @@ def find_candidates(levels: list[np.ndarray], min_contrast: float, max_per_level
         c = xcorner_contrast(lev, sigma)
         if maps is not None:
             maps.append(c)
-        # local maxima (equal to the nms x nms maximum) among the pixels above the threshold
-        inner_c = c[border:c.shape[0] - border, border:c.shape[1] - border]
-        ys, xs = np.nonzero(inner_c >= min_contrast)
+        # local maxima (equal to the nms x nms maximum) among the pixels above the threshold, as one
+        # mask before any index array (on a textured 45 MP photograph's search image half a million
+        # pixels pass the threshold); flat indices, since np.nonzero of a 2-D mask took 5-8 ms there
+        body = (slice(border, c.shape[0] - border), slice(border, c.shape[1] - border))
+        peak = c[body] >= min_contrast
+        peak &= c[body] >= cv2.dilate(c, kernel)[body]
+        ys, xs = np.divmod(np.flatnonzero(peak), peak.shape[1])
         ys += border
         xs += border
         vals = c[ys, xs]
-        top = vals >= cv2.dilate(c, kernel)[ys, xs]
-        ys, xs, vals = ys[top], xs[top], vals[top]
         if xs.size == 0:
             continue
         order = np.argsort(-vals)[:max_per_level]
