@@ -5,7 +5,9 @@ A sample is one ``crop`` x ``crop`` gray crop (float32 in [0, 1], shape (1, S, S
 one affine warp of the full image (cv2.warpAffine), composed of:
 
 * a centre: with probability ``marker_frac`` a true marker's aiming point shifted by up to
-  ``shift_frac`` of the crop, else a uniform point of the image;
+  ``shift_frac`` of the crop, else a uniform point of the image; with ``small_marker_bias`` b > 0 the
+  marker is drawn with probability proportional to radius ** -b (small markers are where the shipped
+  network misses most), else uniformly;
 * a scale in [scale_min, scale_max] (log-uniform), a rotation in [0, 360) degrees, a horizontal flip;
 * photometric: brightness/contrast/gamma jitter, Gaussian blur (sigma in ``blur_sigma``) on
   ``blur_prob`` (80 %) of the samples, Gaussian noise.
@@ -41,6 +43,7 @@ class AugmentConfig:
     contrast: float = 0.25
     gamma: float = 0.25
     noise_max: float = 4.0  # std of additive Gaussian noise, grey levels (uniform in [0, noise_max])
+    small_marker_bias: float = 0.0  # b: marker k drawn with p ~ radius_k ** -b (0: uniform)
 
 
 @dataclass
@@ -113,13 +116,20 @@ def crop_transform(center: tuple[float, float], scale: float, angle_deg: float, 
 
 
 def augment(image: np.ndarray, mask: np.ndarray, centers: np.ndarray, cfg: AugmentConfig,
-            rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """One augmented crop: (float32 (S, S) in [0, 1], int64 labels (S, S) in {0, 1, 255})."""
+            rng: np.random.Generator, radii: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """One augmented crop: (float32 (S, S) in [0, 1], int64 labels (S, S) in {0, 1, 255}).
+
+    ``radii`` (pixels, one per centre) are needed only when ``cfg.small_marker_bias`` > 0.
+    """
     h, w = image.shape[:2]
     S = cfg.crop
     scale = math.exp(rng.uniform(math.log(cfg.scale_min), math.log(cfg.scale_max)))
     if len(centers) and rng.random() < cfg.marker_frac:
-        cx, cy = centers[rng.integers(len(centers))]
+        if cfg.small_marker_bias > 0 and radii is not None and len(radii) == len(centers):
+            w_k = np.maximum(np.asarray(radii, float), 1.0) ** -cfg.small_marker_bias
+            cx, cy = centers[rng.choice(len(centers), p=w_k / w_k.sum())]
+        else:  # the draw of the unbiased default stays what it was, so old runs replay exactly
+            cx, cy = centers[rng.integers(len(centers))]
         span = cfg.shift_frac * S / scale
         cx += rng.uniform(-span, span)
         cy += rng.uniform(-span, span)
@@ -191,7 +201,7 @@ class CropDataset:
         rng = np.random.default_rng([self.seed, int(epoch), int(i)])
         k = int(rng.integers(len(self.samples)))
         img, mask = self._load(k)
-        x, lab = augment(img, mask, self.samples[k].centers, self.cfg, rng)
+        x, lab = augment(img, mask, self.samples[k].centers, self.cfg, rng, self.samples[k].radii)
         return torch.from_numpy(x[None]), torch.from_numpy(lab)
 
 

@@ -498,6 +498,38 @@ def test_augmented_crops_keep_labels_aligned():
             assert np.mean((v < 0.25) | (v > 0.75)) > 0.7
 
 
+def test_small_marker_bias_draws_small_markers_more_often():
+    from learned.data import AugmentConfig, augment
+
+    # two markers far apart, 8 and 64 px in radius
+    img = np.full((200, 600), 128, np.uint8)
+    mask = np.zeros_like(img)
+    centers = np.array([[100.0, 100.0], [500.0, 100.0]])
+    radii = np.array([8.0, 64.0])
+    mask[95:106, 95:106] = 1
+    mask[95:106, 495:506] = 1
+
+    # the crop is centred on a marker either way; the small one's half of the image is dark
+    def small_count(bias):
+        cfg = AugmentConfig(crop=64, marker_frac=1.0, shift_frac=0.0, scale_min=1.0, scale_max=1.0, rotate=False,
+                            flip=False, blur_prob=0.0, noise_max=0.0, small_marker_bias=bias)
+        rng = np.random.default_rng(1)
+        img2 = img.copy()
+        img2[:, :300] = 20
+        n = 0
+        for _ in range(400):
+            x, lab = augment(img2, mask, centers, cfg, rng, radii)
+            assert lab[31, 31] == 1
+            n += x[5, 5] < 0.3
+        return n
+
+    n0, n1, n2 = small_count(0.0), small_count(1.0), small_count(2.0)
+    # p(small) = 0.5, 8/9 and 64/65 for b = 0, 1, 2 (400 draws: 3-sigma bounds)
+    assert 170 <= n0 <= 230
+    assert 335 <= n1 <= 376
+    assert n2 >= 385
+
+
 def test_cli_train_resume_export_and_detect(tmp_path, capsys):
     from cpdetect.cli import main
 

@@ -35,6 +35,9 @@ def register(sub) -> None:
                         "per image (upstream)")
     p.add_argument("--lr", type=float, default=None,
                    help="base learning rate, poly decay (default 0.01 for sgd, 0.001 for adamw)")
+    p.add_argument("--small-marker-bias", type=float, default=0.0, metavar="B",
+                   help="draw the crops' markers with probability ~ radius ** -B, to train more on small "
+                        "markers (default 0: every marker alike)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda, cuda:1 ...")
     p.add_argument("--threads", type=int, default=2, help="CPU threads (default 2)")
@@ -50,6 +53,7 @@ def run(args) -> int:
     from ..errors import UsageError
 
     try:
+        from learned.data import AugmentConfig
         from learned.train import TrainConfig, train
     except ModuleNotFoundError as exc:
         if exc.name == "torch":
@@ -66,13 +70,16 @@ def run(args) -> int:
         raise UsageError("--val-frac must be in [0, 1)")
     if args.crop % 32:
         raise UsageError("--crop must be a multiple of 32")
+    if not 0 <= args.small_marker_bias <= 4:
+        raise UsageError("--small-marker-bias must be in [0, 4]")
     if args.model == "from-init" and not args.init:
         raise UsageError("--model from-init needs --init")
     cfg = TrainConfig(data=args.data, out=args.out, val_data=args.val_data, model=args.model, init=args.init,
                       freeze_backbone=args.freeze_backbone, epochs=args.epochs,
                       iters_per_epoch=args.iters_per_epoch, batch=args.batch, crop=args.crop, optimizer=args.optimizer, rmi_scope=args.rmi_scope, lr=args.lr,
                       val_frac=args.val_frac, seed=args.seed, device=args.device, threads=args.threads,
-                      workers=args.workers, checkpoint_minutes=args.checkpoint_minutes)
+                      workers=args.workers, checkpoint_minutes=args.checkpoint_minutes,
+                      augment=AugmentConfig(small_marker_bias=args.small_marker_bias))
     try:
         res = train(cfg, resume=args.resume)
     except ValueError as exc:
