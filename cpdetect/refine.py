@@ -227,6 +227,12 @@ def _symmetry_offsets(w: float, shape_hint: np.ndarray | None) -> np.ndarray:
     return d[inside]
 
 
+def _symmetry_smoothing(window_px: float) -> float:
+    """The Gaussian sigma (px) :func:`refine_symmetry` smooths with: light, for stable interpolation
+    and gradients."""
+    return float(np.clip(0.12 * window_px, 0.7, 2.5))
+
+
 def refine_symmetry(gray: np.ndarray, x0: float, y0: float, radius_px: float, window_px: float | None = None,
                     max_shift_px: float | None = None, shape_hint: np.ndarray | None = None,
                     max_iter: int = 20) -> RefineResult:
@@ -239,7 +245,7 @@ def refine_symmetry(gray: np.ndarray, x0: float, y0: float, radius_px: float, wi
     gray = _check_inputs(gray, x0, y0, radius_px)
     w = float(window_px) if window_px is not None else default_window(radius_px)
     max_shift = float(max_shift_px) if max_shift_px is not None else max(2.0, 0.35 * radius_px)
-    ss = float(np.clip(0.12 * w, 0.7, 2.5))  # light smoothing: stable interpolation and gradients
+    ss = _symmetry_smoothing(w)
     half = int(math.ceil(w + max_shift + 3 * ss + 3))
     patch = _Patch(gray, x0, y0, half)
     if not patch.valid:
@@ -520,6 +526,56 @@ def refine_center(gray: np.ndarray, x0: float, y0: float, radius_px: float, meth
     return min(others, key=lambda r: r.sigma_px)
 
 
+def outline_window(outline: np.ndarray, x: float, y: float, frac: float = 1.0,
+                   margin_px: float = 1.0, max_px: float = 40.0) -> tuple[np.ndarray, float] | None:
+    """An elliptical symmetry window that stays inside a marker's outline, for :func:`refine_symmetry`.
+
+    outline: the pattern's outline polygon ((n, 2) pixels, OpenCV convention), star-shaped about the
+    centre (x, y). The ellipse has the shape of the outline's second moments (a tilted marker's
+    foreshortening) and is centred at (x, y); it is scaled so that in every direction both d and -d
+    stay within ``frac`` of the outline's distance from the centre, less ``margin_px`` and twice the
+    smoothing :func:`refine_symmetry` applies (blur at the outline breaks the point symmetry first),
+    and to at most ``max_px`` (as :func:`default_window`: wider adds little and costs time). Returns (shape_hint, window_px) as
+    :func:`refine_symmetry` takes them (window_px: the ellipse's semi-major axis), or None when the
+    outline is degenerate or does not surround the centre.
+    """
+    import cv2
+
+    P = np.asarray(outline, float).reshape(-1, 2)
+    if len(P) < 3 or not np.all(np.isfinite(P)):
+        return None
+    if cv2.pointPolygonTest(P.astype(np.float32).reshape(-1, 1, 2), (float(x), float(y)), False) <= 0:
+        return None
+    mo = cv2.moments(P.astype(np.float32))
+    if mo["m00"] <= 1e-9:
+        return None
+    cov = np.array([[mo["mu20"], mo["mu11"]], [mo["mu11"], mo["mu02"]]]) / mo["m00"]
+    ev, V = np.linalg.eigh(cov)
+    if ev[0] <= 1e-9:
+        return None
+    J = V @ np.diag(np.sqrt(ev / ev[1])) @ V.T  # unit disc -> the moment ellipse, semi-major 1
+    # the outline's distance from the centre by direction: the perimeter sampled densely
+    Q = np.vstack([P, P[:1]])
+    t = np.linspace(0.0, 1.0, 16, endpoint=False)
+    D = (Q[:-1, None, :] + t[None, :, None] * (Q[1:] - Q[:-1])[:, None, :]).reshape(-1, 2) - (x, y)
+    ang, rad = np.arctan2(D[:, 1], D[:, 0]), np.hypot(D[:, 0], D[:, 1])
+    order = np.argsort(ang)
+    th = np.linspace(-math.pi, math.pi, 72, endpoint=False)
+    rho = np.interp(th, ang[order], rad[order], period=2 * math.pi)
+    rho_sym = np.minimum(rho, np.roll(rho, 36))  # d and -d both inside
+    u = np.stack([np.cos(th), np.sin(th)])
+    e = 1.0 / np.linalg.norm(np.linalg.solve(J, u), axis=0)  # the unit ellipse's radius by direction
+    reach = float(np.min(frac * rho_sym / e)) - margin_px
+    # refine_symmetry smooths the image first: keep two of its smoothing sigmas off the outline too
+    w = reach
+    for _ in range(3):
+        w = reach - 2.0 * _symmetry_smoothing(w)
+    w = min(w, float(max_px))
+    if not w >= 2.5:
+        return None
+    return J, w
+
+
 # refine_center_coarse_to_fine settles the centre on a reduced copy first when the seed may be
 # further than this from it (px): a full-resolution window that wide costs tens of times a narrow one
 COARSE_SHIFT_PX = 16.0
@@ -579,5 +635,5 @@ def refine_center_painted(gray: np.ndarray, paint, x0: float, y0: float, radius_
     return alt if alt.ok and (not res.ok or alt.sigma_px < res.sigma_px) else res
 
 
-__all__ = ["RefineResult", "refine_center", "refine_center_coarse_to_fine", "refine_center_painted", "refine_saddle",
+__all__ = ["RefineResult", "outline_window", "refine_center", "refine_center_coarse_to_fine", "refine_center_painted", "refine_saddle",
            "refine_symmetry", "refine_hough", "default_window", "METHODS"]

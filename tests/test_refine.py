@@ -5,14 +5,15 @@ import cv2
 import numpy as np
 import pytest
 
-from cpdetect.markers import MarkerSpec, frontal_homography, plane_homography, projected_center, \
+from cpdetect.markers import MarkerSpec, apply_homography, frontal_homography, plane_homography, projected_center, \
     projected_radius, render_marker
-from cpdetect.refine import METHODS, default_window, refine_center
+from cpdetect.refine import METHODS, default_window, outline_window, refine_center, refine_symmetry
 
 
 def render(center, radius, angle=0.0, marker_type="square", shape=(160, 160), tilt_deg=0.0, tilt_axis=0.3,
-           noise=0.0, blur=0.0, gradient=(0.0, 0.0), rng=None):
-    """float image, true centre and equal-area radius of one marker (dark 40, bright 210, bg 120)."""
+           noise=0.0, blur=0.0, gradient=(0.0, 0.0), rng=None, outline=False):
+    """float image, true centre and equal-area radius of one marker (dark 40, bright 210, bg 120);
+    with ``outline``, also the pattern's outline polygon in the image."""
     spec = MarkerSpec(marker_type, size_m=1.0)
     if tilt_deg == 0.0:
         H = frontal_homography(center, radius, angle, spec)
@@ -29,7 +30,8 @@ def render(center, radius, angle=0.0, marker_type="square", shape=(160, 160), ti
         img = cv2.GaussianBlur(img, (0, 0), blur)
     if noise > 0:
         img = img + rng.normal(0.0, noise, img.shape)
-    return np.clip(img, 0, 255).astype(np.float32), projected_center(H), projected_radius(spec, H)
+    out = np.clip(img, 0, 255).astype(np.float32), projected_center(H), projected_radius(spec, H)
+    return out + (apply_homography(H, spec.outline(64)),) if outline else out
 
 
 def test_window_adapts_to_size_and_is_clamped():
@@ -229,3 +231,58 @@ def test_coarse_to_fine_at_the_image_corner_and_on_no_marker():
     flat = np.full((400, 500), 120.0, np.float32)
     res = refine_center_coarse_to_fine(flat, 250.0, 200.0, 120.0, max_shift_px=40.0)
     assert not res.ok and (res.x, res.y) == (250.0, 200.0)
+
+
+@pytest.mark.parametrize("marker_type", ["square", "circle", "diagonal"])
+def test_outline_window_is_an_ellipse_inside_a_tilted_pattern(marker_type):
+    img, c, r, poly = render((90.2, 85.7), 30.0, angle=0.5, marker_type=marker_type, tilt_deg=60.0, tilt_axis=1.0,
+                             shape=(180, 180), outline=True)
+    J, w = outline_window(poly, c[0], c[1])
+    t = np.linspace(0, 2 * np.pi, 90, endpoint=False)
+    edge = (J @ np.stack([np.cos(t), np.sin(t)])).T * w
+    cnt = poly.astype(np.float32).reshape(-1, 1, 2)
+    for sign in (1.0, -1.0):  # d and -d: both inside, at least the margin (1 px) from the outline
+        assert all(cv2.pointPolygonTest(cnt, (float(c[0] + sign * dx), float(c[1] + sign * dy)), True) >= 0.99
+                   for dx, dy in edge)
+    s = np.linalg.svd(J, compute_uv=False)
+    assert s[0] == pytest.approx(1.0)
+    assert 0.35 < s[1] < 0.75  # foreshortened by the 60 degree tilt (cos 60 = 0.5, and perspective)
+    assert w > 1.2 * default_window(r)  # more of the pattern than the disc the radius alone allows
+    res = refine_symmetry(img, c[0] + 0.6, c[1] - 0.4, r, window_px=w, shape_hint=J)
+    # no noise: what is left is the perspective seen through the smoothing near the outline
+    assert res.ok and np.hypot(res.x - c[0], res.y - c[1]) < 0.03
+
+
+def test_outline_window_refuses_what_it_cannot_use():
+    square = np.array([[0.0, 0.0], [20.0, 0.0], [20.0, 20.0], [0.0, 20.0]])
+    assert outline_window(square, 30.0, 10.0) is None  # the centre outside the outline
+    assert outline_window(square[:2], 10.0, 10.0) is None  # not a polygon
+    assert outline_window(np.array([[0.0, 0.0], [20.0, 0.0], [40.0, 0.0]]), 10.0, 0.0) is None  # no area
+    assert outline_window(square * 0.2, 2.0, 2.0) is None  # too small for a window of 2.5 px
+    # the window keeps two smoothing sigmas of refine_symmetry (0.12 w, at least 0.7 px) off the outline
+    J, w = outline_window(square, 10.0, 10.0, frac=1.0, margin_px=0.0)
+    assert w + 2 * 0.12 * w == pytest.approx(10.0, abs=0.05) and np.allclose(J, np.eye(2), atol=1e-6)
+    J, w = outline_window(square, 14.0, 10.0, frac=1.0, margin_px=0.0)  # off-centre: the nearer side rules
+    assert w + 2 * 0.7 == pytest.approx(6.0, abs=0.05)
+    J, w2 = outline_window(square, 14.0, 10.0, frac=1.0, margin_px=1.0)
+    assert w2 == pytest.approx(w - 1.0, abs=0.05)
+    assert outline_window(square * 10, 100.0, 100.0)[1] == pytest.approx(40.0)  # capped as default_window
+
+
+def test_outline_window_lowers_the_error_of_tilted_noisy_markers():
+    rng = np.random.default_rng(8)
+    base, wide = [], []
+    for _ in range(12):
+        c0 = (90.0 + rng.uniform(-0.5, 0.5), 90.0 + rng.uniform(-0.5, 0.5))
+        img, c, r, poly = render(c0, 22.0, angle=rng.uniform(0, np.pi), marker_type="square", tilt_deg=55.0,
+                                 tilt_axis=rng.uniform(0, np.pi), noise=6.0, blur=1.0, rng=rng, shape=(180, 180),
+                                 outline=True)
+        seed = c + rng.uniform(-0.7, 0.7, 2)
+        a = refine_center(img, seed[0], seed[1], r)
+        J, w = outline_window(poly, a.x, a.y)
+        b = refine_symmetry(img, a.x, a.y, r, window_px=w, shape_hint=J, max_shift_px=1.0)
+        assert a.ok and b.ok
+        base.append(np.hypot(a.x - c[0], a.y - c[1]))
+        wide.append(np.hypot(b.x - c[0], b.y - c[1]))
+    base, wide = np.array(base), np.array(wide)
+    assert 0.005 < wide.mean() < 0.8 * base.mean() and base.mean() < 0.1
