@@ -79,7 +79,7 @@ import numpy as np
 from .centre_reach import CENTRE_REACH_MIN, centre_reach
 from .detector import as_gray_uint8, settings_from_dataclass
 from .imageio import paint_image
-from .refine import outline_window, refine_center, refine_center_coarse_to_fine, refine_symmetry
+from .refine import refine_center, refine_center_coarse_to_fine, refine_in_outline
 from .types import DetectionResult, MarkerDetection
 from .xcorner import build_pyramid, find_candidates
 
@@ -1256,9 +1256,11 @@ class _Verifier:
 
 
 def verify_marker_at(gray: np.ndarray, x: float, y: float, radius_px: float,
-                     settings: ClassicalSettings | None = None) -> tuple[str, float, float] | None:
+                     settings: ClassicalSettings | None = None, with_outline: bool = False) -> tuple | None:
     """Check the marker model at a known centre (x, y) (full-resolution pixels) of a marker of about
-    ``radius_px``: (type, radius_px, score) from the outline fit, or None when the model does not fit.
+    ``radius_px``: (type, radius_px, score) from the outline fit, or None when the model does not fit;
+    with ``with_outline``, (type, radius_px, score, outline) with the outline polygon ((n, 2) image
+    pixels).
 
     Reads only a window of about 2.6 radii around the centre, reduced so the marker spans at most
     about 40 pixels per radius; used by other detectors (e.g. ``hma``) to type their instances.
@@ -1282,6 +1284,8 @@ def verify_marker_at(gray: np.ndarray, x: float, y: float, radius_px: float,
     for frac in (0.12, 0.06, 0.25):
         v = verifier.verify(x - x0, y - y0, max(1.5, frac * float(radius_px)))
         if not isinstance(v, str):
+            if with_outline:
+                return v.type, float(v.radius), float(v.score), v.outline + (x0, y0)
             return v.type, float(v.radius), float(v.score)
     return None
 
@@ -1488,12 +1492,8 @@ class _Scan:
                 if alt.ok and (not ref.ok or alt.sigma_px < ref.sigma_px):
                     ref = alt
             if ref.ok and s.outline_window > 0:
-                win = outline_window(v.outline + [ref.x - v.x, ref.y - v.y], ref.x, ref.y, s.outline_window)
-                if win is not None:
-                    pol = refine_symmetry(gray, ref.x, ref.y, v.radius, window_px=win[1], max_shift_px=1.0,
-                                          shape_hint=win[0])
-                    if pol.ok and pol.sigma_px < ref.sigma_px and math.hypot(pol.x - ref.x, pol.y - ref.y) < 1.0:
-                        ref = pol
+                ref = refine_in_outline(gray, ref.x, ref.y, v.radius, ref.sigma_px, v.outline + [ref.x - v.x, ref.y - v.y],
+                                        s.outline_window) or ref
             if ref.ok:
                 if any(math.hypot(ref.x - a.x, ref.y - a.y) < 0.5 * a.radius for a, _ in accepted):
                     continue

@@ -576,6 +576,22 @@ def outline_window(outline: np.ndarray, x: float, y: float, frac: float = 1.0,
     return J, w
 
 
+def refine_in_outline(gray: np.ndarray, x: float, y: float, radius_px: float, sigma_px: float,
+                      outline: np.ndarray, frac: float = 1.0) -> RefineResult | None:
+    """A refined centre (x, y) of uncertainty ``sigma_px`` fitted again by :func:`refine_symmetry` on
+    the :func:`outline_window` of the marker's ``outline`` (image pixels, around that centre); the
+    new fit when it holds within 1 px with a smaller sigma, else None (keep the first). A disc sized
+    by the radius alone must stay inside the pattern at any tilt, so on most markers it uses a
+    fraction of the signal this window does."""
+    win = outline_window(outline, x, y, frac)
+    if win is None:
+        return None
+    res = refine_symmetry(gray, x, y, radius_px, window_px=win[1], max_shift_px=1.0, shape_hint=win[0])
+    if res.ok and res.sigma_px < sigma_px and math.hypot(res.x - x, res.y - y) < 1.0:
+        return res
+    return None
+
+
 # refine_center_coarse_to_fine settles the centre on a reduced copy first when the seed may be
 # further than this from it (px): a full-resolution window that wide costs tens of times a narrow one
 COARSE_SHIFT_PX = 16.0
@@ -635,5 +651,5 @@ def refine_center_painted(gray: np.ndarray, paint, x0: float, y0: float, radius_
     return alt if alt.ok and (not res.ok or alt.sigma_px < res.sigma_px) else res
 
 
-__all__ = ["RefineResult", "outline_window", "refine_center", "refine_center_coarse_to_fine", "refine_center_painted", "refine_saddle",
+__all__ = ["RefineResult", "outline_window", "refine_center", "refine_center_coarse_to_fine", "refine_center_painted", "refine_in_outline", "refine_saddle",
            "refine_symmetry", "refine_hough", "default_window", "METHODS"]

@@ -48,6 +48,7 @@ import numpy as np
 
 from cpdetect.centre_reach import CENTRE_REACH_MIN, centre_reach
 from cpdetect.detector import as_gray_uint8, settings_from_dataclass
+from cpdetect.refine import refine_in_outline
 from cpdetect.types import DetectionResult, MarkerDetection
 
 from .centre_choice import CentreRanker, load_centre_ranker
@@ -144,6 +145,11 @@ class HMASettings:
     network's: a classical marker where the network sees none adds nothing. (The classical type for centres
     the marker model does not verify instead of the shape's: type accuracy 0.968 -> 0.966 on the
     train-split dev set, so not used.)
+    outline_window: a marker whose centre the classical marker model verified has its centre fitted
+        once more on an ellipse as large as that model's outline allows
+        (:func:`cpdetect.refine.refine_in_outline` with this ``frac``), kept where its sigma is
+        the smaller; after the instance decision, so the ranker and the instance model see what
+        they were fitted on. 0 turns it off.
     One torch thread per detector because cpdetect parallelises over images (``--workers``): torch's
     multi-threaded kernels on an oversubscribed CPU ran 20x slower here (13.7 against 0.71 s per
     megapixel with one other busy process on 2 cores). OpenCV's threads share a busy CPU gracefully
@@ -181,6 +187,7 @@ class HMASettings:
     rank_sure_mean_p: float = 0.85
     rank_stop: float = 0.9
     seed_pool: int = 24
+    outline_window: float = 1.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "scales", tuple(float(s) for s in self.scales))
@@ -474,6 +481,10 @@ class HMADetector:
                 x0, y0, bw, bh = b.bbox
                 p = prob[y0:y0 + bh, x0:x0 + bw] * (labels[y0:y0 + bh, x0:x0 + bw] == b.label)
                 mtype = self._type_by_shape(gray, p, (x0, y0), f, b.radius, cx, cy)
+            if b.centre is not None and b.centre.outline is not None and s.outline_window > 0:
+                polished = refine_in_outline(gray, cx, cy, b.radius, sigma, b.centre.outline, s.outline_window)
+                if polished is not None:
+                    cx, cy, sigma = polished.x, polished.y, polished.sigma_px
             cx = float(np.clip(cx, -0.5, w - 0.5))
             cy = float(np.clip(cy, -0.5, h - 0.5))
             out.append(MarkerDetection(x=cx, y=cy, score=score, type=mtype, radius_px=float(b.radius),
@@ -563,9 +574,10 @@ class HMADetector:
                 other = found
             if not (sharp or r.sigma_px <= s.max_sigma_verified_px):
                 continue
-            v = verify_marker_at(gray, r.x, r.y, radius)
+            v = verify_marker_at(gray, r.x, r.y, radius, with_outline=True)
             if v is not None:
-                return _Centre(found.x, found.y, sigma, "verified", v[0] if s.type_by == "model" else None, v[2])
+                return _Centre(found.x, found.y, sigma, "verified", v[0] if s.type_by == "model" else None, v[2],
+                               outline=v[3])
         if from_classical is not None:
             return from_classical
         if fallback is not None:
@@ -609,14 +621,14 @@ class HMADetector:
             if any(math.hypot(r.x - o.x, r.y - o.y) < 1.0 for o, _, _ in out):
                 continue
             sigma = max(float(r.sigma_px), 1e-3)
-            v = verify_marker_at(gray, r.x, r.y, radius) if r.sigma_px <= checked else None
+            v = verify_marker_at(gray, r.x, r.y, radius, with_outline=True) if r.sigma_px <= checked else None
             sym180, sym90 = point_symmetry(gray, r.x, r.y, radius)
             bsym = blob_symmetry(comp, (r.x + 0.5) * f - 0.5 - x0, (r.y + 0.5) * f - 0.5 - y0)
             sharp = r.sigma_px <= s.max_sigma_px
             kind = "verified" if v is not None else ("centroid" if i == 0 and sharp else "seed")
             c = _Centre(float(r.x), float(r.y), sigma, kind, v[0] if v is not None and s.type_by == "model" else None,
                         v[2] if v is not None else 0.0, sym180=sym180, sym90=sym90, blob_sym=bsym,
-                        reach=centre_reach(gray, r.x, r.y, radius))
+                        reach=centre_reach(gray, r.x, r.y, radius), outline=v[3] if v is not None else None)
             offset = math.hypot(r.x - centroid[0], r.y - centroid[1]) / radius
             feats = candidate_features(sigma, offset, v is not None, c.model_score, c.reach, bsym, sym180, sym90,
                                        i == 0, strength)
@@ -694,6 +706,7 @@ class _Centre:
     sym90: float = 0.0
     blob_sym: float = 0.0
     reach: float | None = None  # centre_reach at this centre when already measured (the ranker's candidates)
+    outline: np.ndarray | None = dataclasses.field(default=None, compare=False)  # the marker model's, when verified
 
 
 def _with_classical(c: _Centre, found: list[MarkerDetection], radius: float) -> _Centre:

@@ -133,7 +133,8 @@ def test_the_detector_keeps_or_drops_by_the_model_and_scores_with_it():
 def test_with_a_model_an_unverified_seed_is_judged_instead_of_dropped():
     # heavy blur and noise: the X-corner refines, but more loosely than the rules accept
     noisy, mask = blurred_noisy_marker()
-    loose = HMADetector.with_backend(OracleBackend(mask), max_sigma_px=100.0).detect(noisy).detections
+    # (the verified centre of the loose run is not fitted again on its outline: the same fit as the seed's)
+    loose = HMADetector.with_backend(OracleBackend(mask), max_sigma_px=100.0, outline_window=0.0).detect(noisy).detections
     sigma = loose[0].sigma_px
     strict = dict(max_sigma_px=0.5 * sigma, max_sigma_verified_px=0.5 * sigma)
     assert HMADetector.with_backend(OracleBackend(mask), **strict).detect(noisy).detections == []
@@ -188,3 +189,26 @@ def test_a_classical_marker_off_the_centre_does_not_confirm_it():
     assert _with_classical(c, [far, near], 20.0).classical
     assert not _with_classical(c, [far], 20.0).classical  # 3 px > max(1.5, 2.0)
     assert _with_classical(c, [far], 40.0).classical  # within a tenth of 40 px
+
+
+def test_verified_centres_are_fitted_again_on_their_outline():
+    import cv2
+    from test_refine import render
+
+    rng = np.random.default_rng(4)
+    err = {0.0: [], 1.0: []}
+    for _ in range(8):
+        c0 = (100.0 + rng.uniform(-0.5, 0.5), 100.0 + rng.uniform(-0.5, 0.5))
+        img, c, r, poly = render(c0, 24.0, angle=rng.uniform(0, np.pi), tilt_deg=50.0, tilt_axis=rng.uniform(0, np.pi),
+                                 noise=6.0, blur=1.0, rng=rng, shape=(200, 200), outline=True)
+        mask = np.zeros(img.shape, np.uint8)
+        cv2.fillPoly(mask, [np.round(poly).astype(np.int32)], 1)
+        found = {}
+        for frac in err:
+            det = HMADetector.with_backend(OracleBackend(mask), instance_model="none", outline_window=frac)
+            d = det.detect(img.astype(np.uint8)).detections
+            assert len(d) == 1
+            found[frac] = d[0]
+            err[frac].append(math.hypot(d[0].x - c[0], d[0].y - c[1]))
+        assert found[1.0].sigma_px <= found[0.0].sigma_px  # the second fit is kept only when it is surer
+    assert 0.005 < np.mean(err[1.0]) < 0.85 * np.mean(err[0.0]) and np.mean(err[0.0]) < 0.15
