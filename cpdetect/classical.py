@@ -52,7 +52,7 @@ Pipeline for one image:
    as the outline allows (:func:`cpdetect.refine.outline_window`), replaces the centre where its
    sigma is smaller: the radius-sized disc must fit a pattern at any tilt, so on most markers it
    uses a fraction of the signal (train-split dev505 / dev808: centre error 0.053 / 0.048 ->
-   0.050 / 0.045 px mean, p95 0.144 / 0.152 -> 0.142 / 0.129 px, the same detections).
+   0.050 / 0.045 px mean, p95 0.144 / 0.152 -> 0.140 / 0.129 px, the same detections).
 6. **Colour pass** (colour images, ``colour_pass``): steps 2-5 again on the *paint* image, the max of
    the three channels at search resolution, for markers painted red or orange on black whose
    luminance contrast is weak (red weighs 0.3 in gray: some show none at all). Only X-corners at
