@@ -215,6 +215,8 @@ class HMASettings:
             raise ValueError("max_sigma_px and max_sigma_verified_px must be positive")
         if not 0.0 <= self.clear_rejected_below <= 1.0:
             raise ValueError("clear_rejected_below must be in [0, 1]")
+        if not 0.0 <= self.outline_window <= 2.0:
+            raise ValueError("outline_window must be in [0, 2] (0: off)")
         if self.max_seeds < 0:
             raise ValueError("max_seeds must be >= 0")
         if self.type_by not in ("model", "shape"):

@@ -184,6 +184,8 @@ def test_unknown_setting_is_refused():
         get_detector("classical", min_radius=3)
     with pytest.raises(UsageError):
         get_detector("classical", refine_method="magic")
+    with pytest.raises(UsageError, match="outline_window"):
+        get_detector("classical", outline_window=5.0)
 
 
 def test_runs_without_torch(tmp_path):

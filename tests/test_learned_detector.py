@@ -186,6 +186,8 @@ def test_settings_are_checked():
         HMADetector.with_backend(OracleBackend(np.zeros((4, 4))), clear_rejected_below=1.5)
     with pytest.raises(ValueError, match="max_sigma_verified_px"):
         HMADetector.with_backend(OracleBackend(np.zeros((4, 4))), max_sigma_verified_px=0.0)
+    with pytest.raises(UsageError, match="outline_window"):
+        get_detector("hma", outline_window=-1.0)
 
 
 def test_rejects_non_images():

@@ -557,6 +557,8 @@ def test_cli_train_resume_export_and_detect(tmp_path, capsys):
     capsys.readouterr()
     assert main(["train", "--data", str(data), "--out", str(tmp_path / "w"), "--workers", "-1"]) == 2
     assert "--workers must be >= 0" in capsys.readouterr().err and not (tmp_path / "w").exists()
+    assert main(["train", "--data", str(data), "--out", str(tmp_path / "w"), "--small-marker-bias", "-1"]) == 2
+    assert "--small-marker-bias must be in [0, 4]" in capsys.readouterr().err and not (tmp_path / "w").exists()
     # bad starts name the problem and leave no folder behind
     capsys.readouterr()
     assert main(["train", "--data", str(data), "--out", str(tmp_path / "new"), "--init", str(tmp_path / "nope")]) == 2
