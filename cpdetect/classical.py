@@ -1492,8 +1492,8 @@ class _Scan:
                 if alt.ok and (not ref.ok or alt.sigma_px < ref.sigma_px):
                     ref = alt
             if ref.ok and s.outline_window > 0:
-                ref = refine_in_outline(gray, ref.x, ref.y, v.radius, ref.sigma_px, v.outline + [ref.x - v.x, ref.y - v.y],
-                                        s.outline_window) or ref
+                moved = v.outline + [ref.x - v.x, ref.y - v.y]
+                ref = refine_in_outline(gray, ref.x, ref.y, v.radius, ref.sigma_px, moved, s.outline_window) or ref
             if ref.ok:
                 if any(math.hypot(ref.x - a.x, ref.y - a.y) < 0.5 * a.radius for a, _ in accepted):
                     continue

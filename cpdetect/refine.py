@@ -535,9 +535,9 @@ def outline_window(outline: np.ndarray, x: float, y: float, frac: float = 1.0,
     foreshortening) and is centred at (x, y); it is scaled so that in every direction both d and -d
     stay within ``frac`` of the outline's distance from the centre, less ``margin_px`` and twice the
     smoothing :func:`refine_symmetry` applies (blur at the outline breaks the point symmetry first),
-    and to at most ``max_px`` (as :func:`default_window`: wider adds little and costs time). Returns (shape_hint, window_px) as
-    :func:`refine_symmetry` takes them (window_px: the ellipse's semi-major axis), or None when the
-    outline is degenerate or does not surround the centre.
+    and to at most ``max_px`` (as :func:`default_window`: wider adds little and costs time).
+    Returns (shape_hint, window_px) as :func:`refine_symmetry` takes them (window_px: the ellipse's
+    semi-major axis), or None when the outline is degenerate or does not surround the centre.
     """
     import cv2
 
@@ -651,5 +651,5 @@ def refine_center_painted(gray: np.ndarray, paint, x0: float, y0: float, radius_
     return alt if alt.ok and (not res.ok or alt.sigma_px < res.sigma_px) else res
 
 
-__all__ = ["RefineResult", "outline_window", "refine_center", "refine_center_coarse_to_fine", "refine_center_painted", "refine_in_outline", "refine_saddle",
-           "refine_symmetry", "refine_hough", "default_window", "METHODS"]
+__all__ = ["RefineResult", "outline_window", "refine_center", "refine_center_coarse_to_fine", "refine_center_painted",
+           "refine_in_outline", "refine_saddle", "refine_symmetry", "refine_hough", "default_window", "METHODS"]

@@ -134,7 +134,8 @@ def test_with_a_model_an_unverified_seed_is_judged_instead_of_dropped():
     # heavy blur and noise: the X-corner refines, but more loosely than the rules accept
     noisy, mask = blurred_noisy_marker()
     # (the verified centre of the loose run is not fitted again on its outline: the same fit as the seed's)
-    loose = HMADetector.with_backend(OracleBackend(mask), max_sigma_px=100.0, outline_window=0.0).detect(noisy).detections
+    loose = HMADetector.with_backend(OracleBackend(mask), max_sigma_px=100.0,
+                                     outline_window=0.0).detect(noisy).detections
     sigma = loose[0].sigma_px
     strict = dict(max_sigma_px=0.5 * sigma, max_sigma_verified_px=0.5 * sigma)
     assert HMADetector.with_backend(OracleBackend(mask), **strict).detect(noisy).detections == []
