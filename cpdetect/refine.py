@@ -544,9 +544,10 @@ def outline_window(outline: np.ndarray, x: float, y: float, frac: float = 1.0,
     P = np.asarray(outline, float).reshape(-1, 2)
     if len(P) < 3 or not np.all(np.isfinite(P)):
         return None
-    if cv2.pointPolygonTest(P.astype(np.float32).reshape(-1, 1, 2), (float(x), float(y)), False) <= 0:
+    P32 = P.astype(np.float32)
+    if cv2.pointPolygonTest(P32.reshape(-1, 1, 2), (float(x), float(y)), False) <= 0:
         return None
-    mo = cv2.moments(P.astype(np.float32))
+    mo = cv2.moments(P32)
     if mo["m00"] <= 1e-9:
         return None
     cov = np.array([[mo["mu20"], mo["mu11"]], [mo["mu11"], mo["mu02"]]]) / mo["m00"]
