@@ -1,4 +1,4 @@
-"""Gradient-boosted decision trees for binary decisions, evaluated with NumPy from a JSON file.
+"""Gradient-boosted decision trees for binary and multi-class decisions, evaluated with NumPy from a JSON file.
 
 A fitted scikit-learn ``HistGradientBoostingClassifier`` is written out by :func:`export_tree_ensemble`
 (a fitting script's job) and read back by :func:`load_tree_ensemble` at run time, so the package needs
@@ -9,6 +9,10 @@ vector), ``baseline`` (log-odds before the trees), ``trees``: per tree, node arr
 ``threshold``, ``left``, ``right``, ``missing_left`` (a NaN feature goes left), ``leaf`` and ``value``
 (the leaf's log-odds contribution). A sample goes left where ``x[feature] <= threshold``, as in
 scikit-learn. Anything else in the file (how it was fitted) is kept in :attr:`TreeEnsemble.info`.
+
+A multi-class classifier is written by :func:`export_class_ensembles` (``format``
+"cpdetect.tree-classes/1"): ``classes`` (names) and ``ensembles``, one such document per class whose
+log-odds is that class's raw score; :class:`ClassEnsembles` predicts the class of the highest score.
 """
 from __future__ import annotations
 
@@ -108,13 +112,9 @@ def load_tree_ensemble(path: str | Path) -> TreeEnsemble:
         return tree_ensemble_from_dict(json.load(f), str(path))
 
 
-def export_tree_ensemble(clf, features: list[str] | tuple[str, ...], **info) -> dict:
-    """The JSON document of a fitted binary scikit-learn ``HistGradientBoostingClassifier`` (numerical
-    features only); ``info`` is stored alongside (how it was fitted)."""
-    if getattr(clf, "n_trees_per_iteration_", 1) != 1:
-        raise ValueError("only binary classifiers can be exported")
+def _trees_doc(predictors: list) -> list[dict]:
     trees = []
-    for (pred,) in clf._predictors:
+    for pred in predictors:
         nd = pred.nodes
         if nd["is_categorical"].any():
             raise ValueError("categorical splits are not supported")
@@ -123,8 +123,83 @@ def export_tree_ensemble(clf, features: list[str] | tuple[str, ...], **info) -> 
                       "left": nd["left"].astype(int).tolist(), "right": nd["right"].astype(int).tolist(),
                       "missing_left": nd["missing_go_to_left"].astype(bool).tolist(),
                       "leaf": nd["is_leaf"].astype(bool).tolist(), "value": [float(v) for v in nd["value"]]})
+    return trees
+
+
+def export_tree_ensemble(clf, features: list[str] | tuple[str, ...], **info) -> dict:
+    """The JSON document of a fitted binary scikit-learn ``HistGradientBoostingClassifier`` (numerical
+    features only); ``info`` is stored alongside (how it was fitted)."""
+    if getattr(clf, "n_trees_per_iteration_", 1) != 1:
+        raise ValueError("only binary classifiers can be exported (see export_class_ensembles)")
     baseline = float(np.ravel(clf._baseline_prediction)[0])
-    return {"format": FORMAT, "features": list(features), "baseline": baseline, "trees": trees, **info}
+    return {"format": FORMAT, "features": list(features), "baseline": baseline,
+            "trees": _trees_doc([p for (p,) in clf._predictors]), **info}
 
 
-__all__ = ["TreeEnsemble", "load_tree_ensemble", "tree_ensemble_from_dict", "export_tree_ensemble"]
+# ------------------------------------------------------------------------------------------------
+# several classes: one ensemble of raw scores per class, the class with the highest score wins
+
+CLASSES_FORMAT = "cpdetect.tree-classes/1"
+
+
+@dataclass(frozen=True)
+class ClassEnsembles:
+    """A multi-class ``HistGradientBoostingClassifier``: per class in ``classes`` a
+    :class:`TreeEnsemble` whose :meth:`TreeEnsemble.log_odds` is that class's raw score (softmax
+    input); the prediction is the class of the highest score, as scikit-learn's ``predict``."""
+
+    classes: tuple[str, ...]
+    ensembles: tuple[TreeEnsemble, ...]
+    info: dict = field(default_factory=dict)
+
+    @property
+    def features(self) -> tuple[str, ...]:
+        return self.ensembles[0].features
+
+    def scores(self, x: np.ndarray) -> np.ndarray:
+        """Raw scores (n, n_classes) for samples ``x`` (n, n_features), or (n_classes,) for one."""
+        return np.stack([np.asarray(e.log_odds(x), float) for e in self.ensembles], -1)
+
+    def predict(self, x: np.ndarray) -> str | np.ndarray:
+        """The class name for one sample (n_features,), or an array of names for (n, n_features)."""
+        s = self.scores(x)
+        if s.ndim == 1:
+            return self.classes[int(np.argmax(s))]
+        return np.array(self.classes, dtype=object)[np.argmax(s, axis=1)]
+
+
+def export_class_ensembles(clf, features: list[str] | tuple[str, ...], **info) -> dict:
+    """The JSON document of a fitted multi-class scikit-learn ``HistGradientBoostingClassifier``
+    (three classes or more, numerical features only); ``info`` is stored alongside."""
+    k = getattr(clf, "n_trees_per_iteration_", 1)
+    if k < 3:
+        raise ValueError("a multi-class classifier (three classes or more) is expected")
+    base = np.ravel(clf._baseline_prediction)
+    ensembles = [{"format": FORMAT, "features": list(features), "baseline": float(base[c]),
+                  "trees": _trees_doc([it[c] for it in clf._predictors])} for c in range(k)]
+    return {"format": CLASSES_FORMAT, "classes": [str(c) for c in clf.classes_], "ensembles": ensembles, **info}
+
+
+def class_ensembles_from_dict(doc: dict, source: str = "class ensembles") -> ClassEnsembles:
+    """A :class:`ClassEnsembles` from the parsed JSON document; ValueError naming ``source`` if malformed."""
+    if not isinstance(doc, dict) or doc.get("format") != CLASSES_FORMAT:
+        raise ValueError(f"{source}: not a {CLASSES_FORMAT} document")
+    try:
+        classes = tuple(str(c) for c in doc["classes"])
+        ens = tuple(tree_ensemble_from_dict(e, source) for e in doc["ensembles"])
+    except (KeyError, TypeError) as e:
+        raise ValueError(f"{source}: malformed class ensembles ({e})") from None
+    if len(classes) < 2 or len(classes) != len(ens) or len({e.features for e in ens}) != 1:
+        raise ValueError(f"{source}: classes and ensembles do not match")
+    info = {k: v for k, v in doc.items() if k not in ("format", "classes", "ensembles")}
+    return ClassEnsembles(classes, ens, info)
+
+
+def load_class_ensembles(path: str | Path) -> ClassEnsembles:
+    """Read class ensembles written by :func:`export_class_ensembles`."""
+    with open(path, encoding="utf-8") as f:
+        return class_ensembles_from_dict(json.load(f), str(path))
+
+
+__all__ = ["TreeEnsemble", "load_tree_ensemble", "tree_ensemble_from_dict", "export_tree_ensemble",
+           "ClassEnsembles", "export_class_ensembles", "class_ensembles_from_dict", "load_class_ensembles"]

@@ -1,4 +1,4 @@
-"""The tree ensemble behind the classical marker score: export, evaluation, the shipped file."""
+"""The tree ensembles behind the classical marker score and type: export, evaluation, the shipped files."""
 from __future__ import annotations
 
 import json
@@ -6,7 +6,9 @@ import json
 import numpy as np
 import pytest
 
-from cpdetect.tree_ensemble import FORMAT, export_tree_ensemble, load_tree_ensemble, tree_ensemble_from_dict
+from cpdetect.tree_ensemble import (CLASSES_FORMAT, FORMAT, class_ensembles_from_dict, export_class_ensembles,
+                                    export_tree_ensemble, load_class_ensembles, load_tree_ensemble,
+                                    tree_ensemble_from_dict)
 
 
 def _fitted(nan: bool = False):
@@ -80,3 +82,52 @@ def test_shipped_marker_score_matches_the_detector_features():
                   opp=0.3, inverted=0.6, alternations=1.0, outer_mixed=0.5, fill=0.7, alt_far=0.9,
                   dark_surround=0.6)
     assert marker_score(marker) > 0.9 and marker_score(saddle) < 0.1
+
+
+def _fitted_three_classes():
+    from sklearn.ensemble import HistGradientBoostingClassifier
+
+    rng = np.random.default_rng(5)
+    X = rng.normal(size=(900, 3))
+    X[rng.random(X.shape) < 0.05] = np.nan
+    y = np.where(np.nan_to_num(X[:, 0]) > 0.5, "b", np.where(np.nan_to_num(X[:, 1] * X[:, 2]) > 0, "a", "c"))
+    return HistGradientBoostingClassifier(max_depth=3, max_iter=40, random_state=0).fit(X, y), X
+
+
+def test_class_ensembles_reproduce_scikit_learn(tmp_path):
+    clf, X = _fitted_three_classes()
+    path = tmp_path / "t.json"
+    path.write_text(json.dumps(export_class_ensembles(clf, ["u", "v", "w"], note="test")))
+    model = load_class_ensembles(path)
+    assert model.classes == ("a", "b", "c") and model.features == ("u", "v", "w") and model.info["note"] == "test"
+    # the raw scores are scikit-learn's decision function, so the predictions are its own
+    assert np.abs(model.scores(X) - clf.decision_function(X)).max() < 1e-12
+    assert (model.predict(X) == clf.predict(X)).all()
+    assert model.predict(X[7]) == clf.predict(X[7:8])[0]
+    assert len(set(model.predict(X))) == 3
+
+
+def test_binary_and_class_exports_refuse_each_other():
+    clf, _ = _fitted_three_classes()
+    with pytest.raises(ValueError, match="only binary"):
+        export_tree_ensemble(clf, ["u", "v", "w"])
+    binary, _ = _fitted()
+    with pytest.raises(ValueError, match="multi-class"):
+        export_class_ensembles(binary, ["a", "b", "c", "d"])
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda d: d.update(format=FORMAT), "not a cpdetect.tree-classes/1"),
+    (lambda d: d["classes"].pop(), "do not match"),
+    (lambda d: d.pop("ensembles"), "malformed"),
+    (lambda d: d["ensembles"][1].update(features=["x", "y", "z"]), "do not match"),
+])
+def test_malformed_class_ensembles_are_named(change, message):
+    clf, _ = _fitted_three_classes()
+    doc = export_class_ensembles(clf, ["u", "v", "w"])
+    assert doc["format"] == CLASSES_FORMAT
+    change(doc)
+    with pytest.raises(ValueError, match=message) as e:
+        class_ensembles_from_dict(doc, "types.json")
+    assert "types.json" in str(e.value)
+
