@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import pickle
 import sys
 from pathlib import Path
 
@@ -30,45 +31,76 @@ OUT = Path(__file__).resolve().parent.parent / "data" / "marker_score.json"
 SETTINGS = dict(max_depth=5, max_iter=100, learning_rate=0.1, min_samples_leaf=20, random_state=0)
 
 
-def verified_rows(folders: list[str]) -> list[dict]:
-    """Score features of every verified candidate (min_score 0), with ``label`` (on a true marker)
-    and ``key`` (image and marker index, or None)."""
+def verified_rows(folders: list[str], cache: str | None = None) -> list[dict]:
+    """Score features of every verified candidate (min_score 0), with ``label`` (on a true marker),
+    ``key`` (image and marker index, or None), the reported ``type`` and ``radius``, ``typein`` (what
+    decides the type: centre, checker lines, boundary points by sector; None for an outline from the
+    checker lines) and, on a marker, its ``true_type``. ``cache``: a folder keeping each dataset's
+    rows (``<name>.pkl``; delete it after changing the detector), shared with bench/fit_type.py."""
+    rows: list[dict] = []
+    for folder in folders:
+        path = Path(cache) / f"{Path(folder).resolve().name}.pkl" if cache else None
+        if path is not None and path.is_file():
+            with open(path, "rb") as f:
+                got = pickle.load(f)
+            if got.get("folder") == str(Path(folder).resolve()):
+                rows += got["rows"]
+                continue
+        got = _verified_rows_of(folder)
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with open(path, "wb") as f:
+                pickle.dump({"folder": str(Path(folder).resolve()), "rows": got}, f)
+        rows += got
+    return rows
+
+
+def _verified_rows_of(folder: str) -> list[dict]:
     import cv2
 
     import cpdetect.classical as C
     from cpdetect.evaluate import tolerance_px
 
-    rows, cur = [], [""]
-    orig = C._Verifier.verify
+    rows, cur, typein = [], [""], [None]
+    orig, orig_types = C._Verifier.verify, C._type_of
 
     def spy(self, *a):
+        typein[0] = None
         r = orig(self, *a)
         if not isinstance(r, str):
-            rows.append(dict(self.last_features, x=r.x, y=r.y, file=cur[0]))
+            rows.append(dict(self.last_features, x=r.x, y=r.y, file=cur[0], type=r.type, radius=r.radius,
+                             typein=typein[0]))
         return r
+
+    def types_spy(x, y, bounds, widths, pts_by_sector, radius, feats, fallback, trees):
+        typein[0] = dict(x=x, y=y, bounds=np.array(bounds), widths=np.array(widths),
+                         pts_by_sector={k: np.array(v) for k, v in pts_by_sector.items()})
+        # the rows' type is the residual rule's, whatever type trees are shipped (or none yet)
+        return orig_types(x, y, bounds, widths, pts_by_sector, radius, feats, fallback, False)
 
     # the score must not decide which candidates are verified: with every score 1 and no bar for
     # outlines from the checker lines, the rows are the same whatever score is shipped
-    saved = C._Verifier.verify, C.marker_score, C.LINE_FRAME_MIN_SCORE
-    C._Verifier.verify, C.marker_score, C.LINE_FRAME_MIN_SCORE = spy, (lambda feats: 1.0), 0.0
+    saved = C._Verifier.verify, C.marker_score, C.LINE_FRAME_MIN_SCORE, C._type_of
+    C._Verifier.verify, C.marker_score, C.LINE_FRAME_MIN_SCORE, C._type_of = spy, (lambda feats, name=None: 1.0), 0.0, types_spy
     try:
         det = C.ClassicalDetector(min_score=0.0, colour_min_score=0.0)
-        for folder in folders:
-            if not (Path(folder) / "markers.json").is_file():
-                raise SystemExit(f"{folder}: no markers.json (make it with cpdetect synth images)")
-            ds = train_split_dataset(folder, 0, 0, "cpdetect_fit_")  # checks that its backgrounds are train-split
-            for k, item in enumerate(ds.images):
-                cur[0] = f"{folder}/{item.file}"
-                n0 = len(rows)
-                det.detect(cv2.imread(str(ds.image_path(item)), cv2.IMREAD_GRAYSCALE))
-                for r in rows[n0:]:
-                    hit = [i for i, t in enumerate(item.markers)
-                           if math.hypot(t.x - r["x"], t.y - r["y"]) <= tolerance_px(t.radius_px)]
-                    r["label"], r["key"] = int(bool(hit)), (cur[0], hit[0]) if hit else None
-                print(f"\r{folder}: {k + 1}/{len(ds.images)} rows {len(rows)}", end="", file=sys.stderr)
-            print(file=sys.stderr)
+        if not (Path(folder) / "markers.json").is_file():
+            raise SystemExit(f"{folder}: no markers.json (make it with cpdetect synth images)")
+        ds = train_split_dataset(folder, 0, 0, "cpdetect_fit_")  # checks that its backgrounds are train-split
+        for k, item in enumerate(ds.images):
+            cur[0] = f"{folder}/{item.file}"
+            n0 = len(rows)
+            det.detect(cv2.imread(str(ds.image_path(item)), cv2.IMREAD_GRAYSCALE))
+            for r in rows[n0:]:
+                hit = [i for i, t in enumerate(item.markers)
+                       if math.hypot(t.x - r["x"], t.y - r["y"]) <= tolerance_px(t.radius_px)]
+                r["label"], r["key"] = int(bool(hit)), (cur[0], hit[0]) if hit else None
+                if hit:
+                    r["true_type"] = item.markers[hit[0]].type
+            print(f"\r{folder}: {k + 1}/{len(ds.images)} rows {len(rows)}", end="", file=sys.stderr)
+        print(file=sys.stderr)
     finally:
-        C._Verifier.verify, C.marker_score, C.LINE_FRAME_MIN_SCORE = saved
+        C._Verifier.verify, C.marker_score, C.LINE_FRAME_MIN_SCORE, C._type_of = saved
     return rows
 
 
@@ -78,12 +110,19 @@ def kept(rows: list[dict], p: np.ndarray, cut: float) -> tuple[int, int]:
     return len(found), int(sum(1 for r, s in zip(rows, p) if not r["label"] and s >= cut))
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def fit_arguments(description: str, out: Path) -> argparse.ArgumentParser:
+    """The command line of the fitting scripts on verified candidates (this one and bench/fit_type.py)."""
+    ap = argparse.ArgumentParser(description=description)
     ap.add_argument("--data", action="append", required=True, help="train-split dataset folder (repeatable)")
     ap.add_argument("--check", action="append", default=[], help="train-split folder to compare on (repeatable)")
-    ap.add_argument("--out", default=str(OUT))
-    args = ap.parse_args(argv)
+    ap.add_argument("--cache", help="folder keeping each dataset's rows (shared by bench/fit_score.py and "
+                                    "bench/fit_type.py)")
+    ap.add_argument("--out", default=str(out))
+    return ap
+
+
+def main(argv=None) -> int:
+    args = fit_arguments(__doc__.splitlines()[0], OUT).parse_args(argv)
     from sklearn.ensemble import HistGradientBoostingClassifier
 
     import cpdetect.classical as C
@@ -91,13 +130,13 @@ def main(argv=None) -> int:
     from cpdetect.tree_ensemble import export_tree_ensemble, tree_ensemble_from_dict
 
     feats = list(C.SCORE_FEATURES)
-    check = verified_rows(args.check) if args.check else []
+    check = verified_rows(args.check, args.cache) if args.check else []
     Xc = np.array([[r[f] for f in feats] for r in check], float)
     try:  # before anything is written
         shipped = C.score_model().probability(Xc) if check else None
     except FileNotFoundError:
         shipped = None
-    rows = verified_rows(args.data)
+    rows = verified_rows(args.data, args.cache)
     X = np.array([[r[f] for f in feats] for r in rows], float)
     y = np.array([r["label"] for r in rows])
     clf = HistGradientBoostingClassifier(**SETTINGS).fit(X, y)
@@ -117,7 +156,7 @@ def main(argv=None) -> int:
         for name, p in (("shipped", shipped), ("fitted", new)):
             if p is None:
                 continue
-            cuts = (0.2, 0.35, 0.5, 0.65)
+            cuts = (0.35, 0.5, 0.65, 0.75)
             print(f"  {name:8s}", "  ".join(f"cut {c:.2f}: {'%d / %d' % kept(check, p, c)}" for c in cuts))
     write_json_atomic(args.out, doc, indent=None)
     print(f"written {args.out}")

@@ -34,10 +34,13 @@ Pipeline for one image:
 4. **Type** in the frame of the checker lines (:func:`type_residuals`): a sector's boundary points,
    divided by the outline's extents along its two bounding lines, lie on the unit L1 ball for a
    diagonal, L2 for a circle, L-infinity for a square, in any affine view (train-split sets: type
-   accuracy 0.953 / 0.945 / 0.943 -> 0.979 / 0.979 / 0.984 against the earlier rule). The outline
-   model, from which the score and **radius_px** (outline area) come, keeps the earlier rule: the
-   turn between the two straight parts of each sector's boundary (a square's corner ~90 degrees, a
-   circle's arc ~35, a diagonal's single side ~0), the models' residuals deciding in between.
+   accuracy 0.953 / 0.945 / 0.943 -> 0.979 / 0.979 / 0.984 against the earlier rule). Since
+   2026-11-26 gradient-boosted trees (:mod:`cpdetect.marker_type`, ``type_trees``) decide from
+   these residuals and other shape features of the same points, which see what blur and occluders
+   do to each shape (train-split: 0.972 -> 0.978 in 5-fold cross-validation on 13,003 candidates).
+   The outline model, from which the score and **radius_px** (outline area) come, keeps the earlier
+   rule: the turn between the two straight parts of each sector's boundary (a square's corner ~90
+   degrees, a circle's arc ~35, a diagonal's single side ~0), the models' residuals deciding in between.
 5. **Centre** by :func:`cpdetect.refine.refine_center` on the full-resolution image, window adapted to
    the radius; **sigma_px** from the fit. A candidate from a coarse pyramid level may sit tens of
    pixels off a large marker's centre: :func:`cpdetect.refine.refine_center_coarse_to_fine` settles
@@ -136,6 +139,8 @@ class ClassicalSettings:
         and sized by the marker's outline (:func:`cpdetect.refine.outline_window` with this ``frac``),
         kept where its sigma is the smaller; 0 turns it off. The radius-sized disc of the first fit
         must stay inside the pattern at any tilt, so it uses a fraction of a large, little-tilted one.
+    type_trees: the type from gradient-boosted trees over the boundary's shape features
+        (:mod:`cpdetect.marker_type`); False: the type of the smallest :func:`type_residuals`.
     """
 
     min_radius_px: float = 8.0
@@ -151,6 +156,7 @@ class ClassicalSettings:
     colour_min_score: float = 0.5
     probability_map: bool = True
     outline_window: float = 1.0
+    type_trees: bool = True
 
     def __post_init__(self) -> None:
         if not self.min_radius_px > 0:
@@ -397,6 +403,20 @@ def _residuals_of(fits: dict[str, dict[int, tuple]], keep: float = 0.7) -> dict[
     return out
 
 
+def _type_of(x: float, y: float, bounds: np.ndarray, widths: np.ndarray, pts_by_sector: dict[int, np.ndarray],
+             radius: float, feats: dict, fallback: str, trees: bool) -> str:
+    """The type reported for a verified marker: the type trees' (:mod:`cpdetect.marker_type`) with
+    ``trees``, else the type of the smallest :func:`type_residuals`; ``fallback`` (the outline
+    model's type) when the boundary gives no checker-line frame."""
+    if trees:
+        from .marker_type import predict_type, type_features
+
+        f = type_features(x, y, bounds, widths, pts_by_sector, radius, feats)
+        return predict_type(f) if f is not None else fallback
+    residuals = type_residuals(x, y, bounds, widths, pts_by_sector)
+    return min(residuals, key=residuals.get) if residuals else fallback
+
+
 def line_frame_outline(x: float, y: float, bounds: np.ndarray, widths: np.ndarray,
                        pts_by_sector: dict[int, np.ndarray], mtype: str) -> np.ndarray | None:
     """The outline polygon ((n, 2) pixels, counter-clockwise in the image) of a marker of type
@@ -467,15 +487,15 @@ SCORE_FEATURES = ("q", "agree", "logC", "spread", "e_rel", "frac", "widths_min",
 SCORE_FILE = "marker_score.json"
 
 
-@lru_cache(maxsize=1)
-def score_model():
-    """The marker score's tree ensemble (read once; package data)."""
+@lru_cache(maxsize=4)
+def score_model(name: str = SCORE_FILE):
+    """The marker score's tree ensemble, package data file ``name`` (read once)."""
     from .package_data import data_path
     from .tree_ensemble import load_tree_ensemble
 
-    ens = load_tree_ensemble(data_path(SCORE_FILE))
+    ens = load_tree_ensemble(data_path(name))
     if ens.features != SCORE_FEATURES:
-        raise ValueError(f"{SCORE_FILE}: features {ens.features} differ from the detector's {SCORE_FEATURES}")
+        raise ValueError(f"{name}: features {ens.features} differ from the detector's {SCORE_FEATURES}")
     return ens
 
 
@@ -513,9 +533,9 @@ def opposite_mismatch(levels: np.ndarray) -> np.ndarray:
     return best
 
 
-def marker_score(feats: dict) -> float:
-    """P(marker) in [0, 1] from the verification features (tree ensemble, see :func:`score_model`)."""
-    return float(score_model().probability(np.array([feats[k] for k in SCORE_FEATURES], float)))
+def marker_score(feats: dict, name: str = SCORE_FILE) -> float:
+    """P(marker) in [0, 1] from the verification features (tree ensemble ``name``, see :func:`score_model`)."""
+    return float(score_model(name).probability(np.array([feats[k] for k in SCORE_FEATURES], float)))
 
 
 class _Verifier:
@@ -526,8 +546,10 @@ class _Verifier:
 
     N_THETA = 72
 
-    def __init__(self, levels: _Levels, settings: ClassicalSettings, image_size: tuple[int, int]):
+    def __init__(self, levels: _Levels, settings: ClassicalSettings, image_size: tuple[int, int],
+                 score_file: str = SCORE_FILE):
         self.levels = levels
+        self.score_file = score_file
         self.s = settings
         self.w, self.h = image_size
         self.max_radius = settings.max_radius_frac * min(self.w, self.h)
@@ -958,15 +980,13 @@ class _Verifier:
                      core_ratio=float(min(core["radii"][core["core_end"]] / radius, 3.0)), log_r=math.log(radius),
                      opp=core["opp"], hull_fallback=hull_fallback, **outer)
         self.last_features = feats
-        score = marker_score(feats)
+        score = marker_score(feats, self.score_file)
         if fit.get("line_frame") and score < LINE_FRAME_MIN_SCORE:
             return "outline degenerate"
         # the outline model keeps the rule of _fit_outline (the score was fitted on its outlines); the
         # type reported comes from the checker-line frame, which holds under tilt and uses every point
-        reported = fit.get("type")
-        if reported is None:
-            residuals = type_residuals(x, y, core["bounds"], core["widths"], fit["pts_by_sector"])
-            reported = min(residuals, key=residuals.get) if residuals else mtype
+        reported = fit.get("type") or _type_of(x, y, core["bounds"], core["widths"], fit["pts_by_sector"], radius,
+                                               feats, mtype, self.s.type_trees)
         return _Verified(x, y, reported, radius, score, outline, (D, B))
 
     def _fit_outline(self, x, y, core, sec, f, inner, pol_dark: bool | None, r0: float,
@@ -1256,11 +1276,13 @@ class _Verifier:
 
 
 def verify_marker_at(gray: np.ndarray, x: float, y: float, radius_px: float,
-                     settings: ClassicalSettings | None = None, with_outline: bool = False) -> tuple | None:
+                     settings: ClassicalSettings | None = None, with_outline: bool = False,
+                     score_file: str = SCORE_FILE) -> tuple | None:
     """Check the marker model at a known centre (x, y) (full-resolution pixels) of a marker of about
     ``radius_px``: (type, radius_px, score) from the outline fit, or None when the model does not fit;
     with ``with_outline``, (type, radius_px, score, outline) with the outline polygon ((n, 2) image
-    pixels).
+    pixels). ``score_file``: the score's trees (package data; a model fitted on the scores of other
+    trees keeps those).
 
     Reads only a window of about 2.6 radii around the centre, reduced so the marker spans at most
     about 40 pixels per radius; used by other detectors (e.g. ``hma``) to type their instances.
@@ -1273,7 +1295,7 @@ def verify_marker_at(gray: np.ndarray, x: float, y: float, radius_px: float,
     crop = np.ascontiguousarray(gray[y0:y1, x0:x1])
     if min(crop.shape) < 8:
         return None
-    verifier = _Verifier(_search_levels(crop, max(1, int(radius_px // 40)), min_side=8)[2], s, (w, h))
+    verifier = _Verifier(_search_levels(crop, max(1, int(radius_px // 40)), min_side=8)[2], s, (w, h), score_file)
     # no outline from the checker lines alone here: hma verifies seed after seed and keeps the first
     # that holds, and on its fresh test set (seed 9000) that fallback let a seed 57 px off the centre
     # of a marker at the image border hold first (one marker lost, one false one); its instance model

@@ -55,6 +55,10 @@ from .centre_choice import CentreRanker, load_centre_ranker
 from .instances import InstanceModel, blob_features, load_instance_model
 
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parent / "weights" / "default"
+# the classical marker score (package data of cpdetect) whose values the shipped centre ranker and
+# instance model were fitted on (those trees of 2026-11-25); the classical detector's own were
+# refitted since on more images, and a model keeps the inputs it was fitted with
+MODEL_SCORE_FILE = "marker_score_hma.json"
 
 
 def default_model_dir() -> Path:
@@ -576,7 +580,7 @@ class HMADetector:
                 other = found
             if not (sharp or r.sigma_px <= s.max_sigma_verified_px):
                 continue
-            v = verify_marker_at(gray, r.x, r.y, radius, with_outline=True)
+            v = verify_marker_at(gray, r.x, r.y, radius, with_outline=True, score_file=MODEL_SCORE_FILE)
             if v is not None:
                 return _Centre(found.x, found.y, sigma, "verified", v[0] if s.type_by == "model" else None, v[2],
                                outline=v[3])
@@ -623,7 +627,7 @@ class HMADetector:
             if any(math.hypot(r.x - o.x, r.y - o.y) < 1.0 for o, _, _ in out):
                 continue
             sigma = max(float(r.sigma_px), 1e-3)
-            v = verify_marker_at(gray, r.x, r.y, radius, with_outline=True) if r.sigma_px <= checked else None
+            v = verify_marker_at(gray, r.x, r.y, radius, with_outline=True, score_file=MODEL_SCORE_FILE) if r.sigma_px <= checked else None
             sym180, sym90 = point_symmetry(gray, r.x, r.y, radius)
             bsym = blob_symmetry(comp, (r.x + 0.5) * f - 0.5 - x0, (r.y + 0.5) * f - 0.5 - y0)
             sharp = r.sigma_px <= s.max_sigma_px

@@ -385,6 +385,42 @@ def test_type_residuals_tell_the_types_apart_in_any_affine_view(mtype):
 
 
 @pytest.mark.parametrize("mtype", ["square", "circle", "diagonal"])
+def test_type_trees_tell_the_types_apart_in_any_affine_view(mtype):
+    from cpdetect.classical import _type_of
+    from cpdetect.marker_type import TYPE_FEATURES, type_features, type_model
+
+    assert type_model().features == TYPE_FEATURES
+    rng = np.random.default_rng(10 + ["square", "circle", "diagonal"].index(mtype))
+    centre = np.array([200.0, 150.0])
+    score_feats = dict(e_rel=0.01, logC=4.5, frac=0.95, widths_min=0.9)
+    R = lambda a: np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])  # noqa: E731
+    for trial in range(20):
+        # 10 to 60 px, up to 60 degrees of tilt, any rotation; two sectors seen, 0.15 px of noise
+        tilt = rng.uniform(0, np.radians(60))
+        A = rng.uniform(10, 60) * R(rng.uniform(0, 2 * np.pi)) @ np.diag([1.0, np.cos(tilt)]) @ R(rng.uniform(0, 7))
+        bounds, widths, pts = _line_frame_points(mtype, A, centre)
+        radius = float(np.sqrt(abs(np.linalg.det(A)) * {"square": 4.0, "circle": np.pi, "diagonal": 2.0}[mtype] / np.pi))
+        noisy = {k: p + rng.normal(0, 0.15, p.shape) for k, p in pts.items()}
+        for p in (pts, noisy):
+            f = type_features(*centre, bounds, widths, p, radius, score_feats)
+            assert set(f) == set(TYPE_FEATURES) and np.isfinite([f[k] for k in TYPE_FEATURES]).all()
+            assert _type_of(*centre, bounds, widths, p, radius, score_feats, "square", True) == mtype
+            assert _type_of(*centre, bounds, widths, p, radius, score_feats, "square", False) == mtype
+    # no sector with five points: the outline model's type stands
+    few = {k: p[:4] for k, p in pts.items()}
+    assert type_features(*centre, bounds, widths, few, radius, score_feats) is None
+    assert _type_of(*centre, bounds, widths, few, radius, score_feats, "circle", True) == "circle"
+
+
+def test_type_trees_setting_switches_the_rule(det):
+    img, c, _, _ = tilted_scene("diagonal", (161.3, 118.6), 30.0, 30.0, 0.7, 0.35, seed=4)
+    for trees in (True, False):
+        m = get_detector("classical", type_trees=trees).detect(img).detections
+        assert len(m) == 1 and m[0].type == "diagonal"
+    assert get_detector("classical", type_trees=False).settings.type_trees is False
+
+
+@pytest.mark.parametrize("mtype", ["square", "circle", "diagonal"])
 def test_line_frame_outline_recovers_the_outline_from_two_sectors(mtype):
     from cpdetect.classical import line_frame_outline
 
