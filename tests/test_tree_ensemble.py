@@ -131,3 +131,15 @@ def test_malformed_class_ensembles_are_named(change, message):
         class_ensembles_from_dict(doc, "types.json")
     assert "types.json" in str(e.value)
 
+
+def test_shipped_score_files_serve_their_users():
+    """The classical detector's score and the one the hma models were fitted on: same features,
+    different trees (refitted on more images since), both loadable as package data."""
+    from cpdetect.classical import SCORE_FEATURES, score_model
+    from learned.adapter import MODEL_SCORE_FILE
+
+    own, pinned = score_model(), score_model(MODEL_SCORE_FILE)
+    assert own.features == pinned.features == SCORE_FEATURES
+    assert own.info["rows"] > pinned.info["rows"]
+    x = np.array([0.9, 0.95, 4.2, 0.1, 0.02, 0.95, 0.9, 0.2, 0.8, 2.8, 0.08, 0.0, 0.0, 0.2, 0.0, 0.95, 0.3, 0.1])
+    assert own.probability(x) != pinned.probability(x)
