@@ -169,6 +169,8 @@ class ClassicalSettings:
             raise ValueError("search_megapixels must be >= 0.01")
         if self.refine_method not in ("auto", "symmetry", "saddle", "hough"):
             raise ValueError(f"unknown refine_method {self.refine_method!r}")
+        if not 0.0 <= self.min_score <= 1.0:
+            raise ValueError("min_score must be in [0, 1] (a probability)")
         if not 0.0 <= self.min_candidate_score < 1.0:
             raise ValueError("min_candidate_score must be in [0, 1)")
         if not self.colour_gain >= 1.0:

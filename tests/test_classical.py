@@ -186,6 +186,10 @@ def test_unknown_setting_is_refused():
         get_detector("classical", refine_method="magic")
     with pytest.raises(UsageError, match="outline_window"):
         get_detector("classical", outline_window=5.0)
+    for bad in (-0.1, 2.0):
+        with pytest.raises(UsageError, match="min_score must be in"):
+            get_detector("classical", min_score=bad)
+    assert get_detector("classical", min_score=1.0).settings.min_score == 1.0
 
 
 def test_runs_without_torch(tmp_path):
