@@ -43,6 +43,9 @@ def test_installed_package_has_its_data_and_runs_from_elsewhere(installed):
             "assert 'site-packages' in cpdetect.__file__, cpdetect.__file__; "
             "from cpdetect.classical import score_model; "
             "assert 'site-packages' in str(r.files('cpdetect.data')); assert score_model().feature.shape[0] >= 10; "
+            "from cpdetect.marker_type import type_model; from learned.adapter import MODEL_SCORE_FILE; "
+            "assert type_model().classes == ('circle', 'diagonal', 'square'); "
+            "assert score_model(MODEL_SCORE_FILE).features == score_model().features; "
             "print(n)")
     out = subprocess.run([str(venv / "bin" / "python"), "-c", code], cwd=elsewhere, check=True,
                          capture_output=True, text=True).stdout
