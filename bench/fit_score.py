@@ -54,9 +54,12 @@ def verified_rows(folders: list[str], cache: str | None = None) -> list[dict]:
                 continue
         got = _verified_rows_of(folder)
         if path is not None:
+            # written whole or not at all: a run stopped half-way must not leave a cache that loads
             path.parent.mkdir(parents=True, exist_ok=True)
-            with open(path, "wb") as f:
+            tmp = path.with_suffix(".tmp")
+            with open(tmp, "wb") as f:
                 pickle.dump({"folder": str(Path(folder).resolve()), "rows": got}, f)
+            tmp.replace(path)
         rows += got
     return rows
 
