@@ -190,6 +190,39 @@ def test_unknown_setting_is_refused():
         with pytest.raises(UsageError, match="min_score must be in"):
             get_detector("classical", min_score=bad)
     assert get_detector("classical", min_score=1.0).settings.min_score == 1.0
+    for bad in (-0.5, 1.5):
+        with pytest.raises(UsageError, match="retry_score must be in"):
+            get_detector("classical", retry_score=bad)
+
+
+def test_retry_keeps_the_best_ring_start():
+    # a near miss is verified again from the ring starts of RETRY_RING_FRACS, except one as close to
+    # its own start as a quarter of it; the best verification wins, failures and worse ones do not
+    from cpdetect.classical import RETRY_RING_FRACS, _retry_ring_starts, _Verified
+
+    radius = 40.0
+    first = _Verified(10.0, 20.0, "square", radius, 0.3, None, (0, 1))
+    scores = {round(max(1.5, f * radius), 6): s for f, s in zip(RETRY_RING_FRACS, (0.9, "no core", 0.5))}
+
+    class Fake:
+        def __init__(self):
+            self.starts = []
+
+        def verify(self, x, y, r):
+            assert (x, y) == (10.0, 20.0)
+            self.starts.append(r)
+            got = scores[round(r, 6)]
+            return got if isinstance(got, str) else _Verified(x, y, "circle", radius, got, None, (0, 1))
+
+    fake = Fake()
+    best = _retry_ring_starts(fake, 10.0, 20.0, 1.5, first)
+    assert best.score == 0.9 and best.type == "circle"
+    assert sorted(fake.starts) == sorted(scores)
+    # started near 0.12 * radius already: that start is not repeated, the others do not beat 0.3
+    scores[round(0.12 * radius, 6)], scores[round(0.25 * radius, 6)] = 0.95, 0.2
+    fake = Fake()
+    best = _retry_ring_starts(fake, 10.0, 20.0, 0.12 * radius * 1.1, first)
+    assert best is first and len(fake.starts) == len(RETRY_RING_FRACS) - 1
 
 
 def test_runs_without_torch(tmp_path):
