@@ -20,6 +20,14 @@ and for the score currently shipped.
     cpdetect synth images --out dev909 --n 300 --seed 909 --split train
     .venv/bin/python bench/fit_score.py --data train606 --data fit11 --data sc707 \
         --check dev505 --check dev808 --check dev909 --cache rows
+
+Tried on 2026-11-26, not kept: two more features saying whether the four checker lines run on past
+the outline as edges (tile grout, a tag's bit grid and checkerboards carry them on; a marker's lines end at
+its outline), the grey step across each line at 1.15-1.6 outline distances over the contrast, mean
+and least over the lines. On their own they separate poorly (markers: median 0.07, 95th percentile
+0.41-0.44 for the mean; the false markers of the detector 0.02-0.66). Refitted with them on the same
+6,900 images, the dev sets' candidates at the cut 0.65 kept 378 / 565 / 536 markers with 6 / 2 / 9
+false candidates, against 378 / 564 / 538 with 7 / 1 / 10 without them: no gain.
 """
 from __future__ import annotations
 
