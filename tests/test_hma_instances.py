@@ -167,7 +167,7 @@ def test_classical_seeds_keep_a_confirmed_blob_and_add_no_blob_of_their_own():
     assert HMADetector.with_backend(OracleBackend(mask), instances=drop).detect(img).detections == []
     det = HMADetector.with_backend(OracleBackend(mask), instances=drop, classical_seeds=True)
     found = det.detect(img).detections
-    seeds = det._classical_seeds(img)
+    seeds = det._classical(img, False).detections
     assert sorted(round(d.x) for d in seeds) == [round(first[0]), round(second[0])]
     # the classical detector finds both markers; only the one on the network's blob is kept
     assert len(found) == 1
@@ -178,6 +178,31 @@ def test_classical_seeds_keep_a_confirmed_blob_and_add_no_blob_of_their_own():
     # without seeds the same call marks nothing as confirmed
     blobs, _ = det.candidates(img, det.probability(img).prob, 1.0)
     assert [b.centre.classical for b in blobs] == [False]
+
+
+def test_classical_markers_add_what_the_network_missed():
+    # the network's map shows the first marker only: with classical_markers the classical detector's
+    # second marker is added, with its outline in the map; the first stays exactly as it was
+    img, mask, (first, second) = _two_markers()
+    keep = _model(5.0)
+    alone = HMADetector.with_backend(OracleBackend(mask), instances=keep).detect(img)
+    both = HMADetector.with_backend(OracleBackend(mask), instances=keep, classical_markers=True).detect(img)
+    assert len(alone.detections) == 1 and len(both.detections) == 2
+    assert alone.detections[0] in both.detections
+    added = [d for d in both.detections if d not in alone.detections][0]
+    assert math.hypot(added.x - second[0], added.y - second[1]) < 0.1 and added.type == "circle"
+    cx, cy = round(second[0]), round(second[1])
+    assert alone.probability[cy, cx] < 0.1 and both.probability[cy, cx] > 0.9
+    assert np.array_equal(alone.probability[:, :170], both.probability[:, :170])
+    # a marker the network found already (within half the smaller radius) is not added twice
+    from cpdetect.types import DetectionResult, MarkerDetection
+    from learned.adapter import _with_classical_markers
+
+    mine = [MarkerDetection(100.0, 50.0, 0.9, "square", 20.0, 0.05)]
+    theirs = DetectionResult([MarkerDetection(108.0, 50.0, 0.8, "square", 20.0, 0.05),
+                              MarkerDetection(111.0, 50.0, 0.8, "square", 20.0, 0.05)], (200, 100), None)
+    got, prob = _with_classical_markers(mine, np.zeros((100, 200), np.float32), 1.0, theirs)
+    assert [d.x for d in got] == [100.0, 111.0] and not prob.any()
 
 
 def test_a_classical_marker_off_the_centre_does_not_confirm_it():
