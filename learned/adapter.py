@@ -345,7 +345,7 @@ def _with_classical_markers(dets: list[MarkerDetection], prob: np.ndarray, f: fl
         cv2.circle(near, centre, int(math.ceil(1.5 * c.radius_px * f)) + 1, 1, -1)
     theirs = classical.probability_at(pw, ph)
     if theirs is not None:
-        prob = np.where(near > 0, np.maximum(prob, theirs), prob).astype(np.float32)
+        prob = np.where(near > 0, np.maximum(prob, theirs), prob)
     return dets + added, prob
 
 
