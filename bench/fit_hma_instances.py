@@ -23,9 +23,22 @@ from train_split import train_split_dataset
 RESULTS = Path(__file__).parent / "results" / "fit_hma_instances.json"
 
 
+def map_cache(det, folder: Path) -> Path:
+    """``folder``/<key>: the maps of one network and pass settings, so that a refit for another
+    network never reads the maps of the one before (the key hashes model.pt and the settings)."""
+    import hashlib
+
+    s = det.settings
+    h = hashlib.sha256((Path(det.model_dir) / "model.pt").read_bytes())
+    h.update(repr((s.scales, s.small_scales, s.max_side, s.tile, s.overlap)).encode())
+    return folder / h.hexdigest()[:12]
+
+
 def probability_maps(det, ds, cache: Path) -> list[tuple[np.ndarray, float]]:
+    """The network's probability maps of every image of ``ds``, kept in ``cache`` (see :func:`map_cache`)."""
     from cpdetect.imageio import read_image
 
+    cache = map_cache(det, cache)
     cache.mkdir(parents=True, exist_ok=True)
     out = []
     for k, item in enumerate(ds.images):
