@@ -126,12 +126,20 @@ def main(argv: list[str] | None = None) -> int:
 
     from learned.adapter import default_model_dir
     from learned.data import AugmentConfig, CropDataset, samples_from_dataset
+    from learned.hma import load_model
 
     torch.backends.cudnn.allow_tf32 = False
     torch.backends.cuda.matmul.allow_tf32 = False
     torch.set_num_threads(args.threads)
+    from cpdetect.errors import CpdetectError
+
     model_dir = args.model_dir or str(default_model_dir())
-    samples = samples_from_dataset(args.data)
+    try:
+        samples = samples_from_dataset(args.data)
+        load_model(model_dir)
+    except CpdetectError as exc:
+        print(f"train_step_parity: {exc}", file=sys.stderr)
+        return 2
     if not samples:
         print(f"train_step_parity: {args.data}: no images with masks", file=sys.stderr)
         return 2
