@@ -124,15 +124,15 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
+    from cpdetect.errors import CpdetectError
     from learned.adapter import default_model_dir
     from learned.data import AugmentConfig, CropDataset, samples_from_dataset
     from learned.hma import load_model
+    from learned.train import _collate
 
     torch.backends.cudnn.allow_tf32 = False
     torch.backends.cuda.matmul.allow_tf32 = False
     torch.set_num_threads(args.threads)
-    from cpdetect.errors import CpdetectError
-
     model_dir = args.model_dir or str(default_model_dir())
     try:
         samples = samples_from_dataset(args.data)
@@ -144,9 +144,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"train_step_parity: {args.data}: no images with masks", file=sys.stderr)
         return 2
     crops = CropDataset(samples, AugmentConfig(), args.batch, args.seed)
-    items = [crops[i] for i in range(args.batch)]
-    x = torch.stack([a for a, _ in items])
-    y = torch.stack([b for _, b in items])
+    x, y = _collate([crops[i] for i in range(args.batch)])  # the batch as training stacks it
 
     ref = one_step(torch, model_dir, "cpu", False, x, y)
     rows = []
