@@ -153,9 +153,12 @@ class HMASettings:
         the network found none (no hma marker within half the smaller radius, 3 px at least), with
         their classical score, type and centre, and their outline filled into the probability map
         (the larger of the two maps within 1.5 radii). Off by default: it is a union of the two
-        detectors, not the network's own figures. On the fresh sets 9000-9300: 9-18 more markers
-        and 4-9 more false ones per set, instance F1 up 0.001 to 0.013, pixel IoU down 0.0002 to 0.012 (the
-        false ones' outlines), about 1.2-2x the time (TRAINING.md).
+        detectors, not the network's own figures (TRAINING.md gives both).
+    classical_min_support: with classical_markers, a classical marker is added only where the
+        network's own map (before rejected blobs are cleared) averages at least this P(marker) over
+        the marker's classical outline: the network vetoes what it sees nothing of (0: no veto). On
+        the train-split dev sets 808 and 909 the union added 38 markers, 6 of them false; any cut in
+        (0.008, 0.017] keeps 29 true and 1 false one, and 0.01 is the round value in it.
     outline_window: a marker whose centre the classical marker model verified has its centre fitted
         once more on an ellipse as large as that model's outline allows
         (:func:`cpdetect.refine.refine_in_outline` with this ``frac``), kept where its sigma is
@@ -193,6 +196,7 @@ class HMASettings:
     min_centre_reach: float = CENTRE_REACH_MIN
     classical_seeds: bool = False
     classical_markers: bool = False
+    classical_min_support: float = 0.01
     centre_ranker: str = "auto"
     rank_seeds: int = 8
     rank_seeds_unsure: int = 3
@@ -227,6 +231,8 @@ class HMASettings:
             raise ValueError("max_sigma_px and max_sigma_verified_px must be positive")
         if not 0.0 <= self.clear_rejected_below <= 1.0:
             raise ValueError("clear_rejected_below must be in [0, 1]")
+        if not 0.0 <= self.classical_min_support < 1.0:
+            raise ValueError("classical_min_support must be in [0, 1)")
         if not 0.0 <= self.outline_window <= 2.0:
             raise ValueError("outline_window must be in [0, 2] (0: off)")
         if self.max_seeds < 0:
@@ -330,23 +336,50 @@ def dedupe(dets: list[MarkerDetection]) -> list[MarkerDetection]:
 
 
 def _with_classical_markers(dets: list[MarkerDetection], prob: np.ndarray, f: float,
-                            classical: DetectionResult) -> tuple[list[MarkerDetection], np.ndarray]:
+                            classical: DetectionResult, network: np.ndarray | None = None,
+                            min_support: float = 0.0) -> tuple[list[MarkerDetection], np.ndarray]:
     """``dets`` plus the classical markers no detection lies on (closer than half the smaller
     radius, 3 px at least), and ``prob`` (P(marker) at ``f`` map pixels per image pixel) with their
-    classical outlines filled in: the larger of the two maps within 1.5 radii of each added marker."""
+    classical outlines filled in: the larger of the two maps within 1.5 radii of each added marker.
+    ``network``: the network's own map (same grid, before rejected blobs are cleared); a classical
+    marker is added only where it averages at least ``min_support`` over the marker's classical
+    outline (see :func:`_network_support`)."""
     added = [c for c in classical.detections
              if all(math.hypot(c.x - d.x, c.y - d.y) >= max(3.0, 0.5 * min(c.radius_px, d.radius_px)) for d in dets)]
+    ph, pw = prob.shape
+    theirs = classical.probability_at(pw, ph)
+    if added and network is not None and min_support > 0:
+        added = [c for c in added if _network_support(network, theirs, f, c) >= min_support]
     if not added:
         return dets, prob
-    ph, pw = prob.shape
     near = np.zeros((ph, pw), np.uint8)
     for c in added:
         centre = (int(round((c.x + 0.5) * f - 0.5)), int(round((c.y + 0.5) * f - 0.5)))
         cv2.circle(near, centre, int(math.ceil(1.5 * c.radius_px * f)) + 1, 1, -1)
-    theirs = classical.probability_at(pw, ph)
     if theirs is not None:
         prob = np.where(near > 0, np.maximum(prob, theirs), prob)
     return dets + added, prob
+
+
+def _network_support(network: np.ndarray, theirs: np.ndarray | None, f: float, c: MarkerDetection) -> float:
+    """Mean network P(marker) over the classical marker ``c``'s outline: the component of the
+    classical map (``theirs``, >= 0.5) under its centre, else a disc of half its radius (map pixels,
+    ``f`` per image pixel)."""
+    ph, pw = network.shape
+    cx = min(max(int(round((c.x + 0.5) * f - 0.5)), 0), pw - 1)
+    cy = min(max(int(round((c.y + 0.5) * f - 0.5)), 0), ph - 1)
+    r = int(math.ceil(2.0 * c.radius_px * f)) + 2
+    x0, y0, x1, y1 = max(cx - r, 0), max(cy - r, 0), min(cx + r + 1, pw), min(cy + r + 1, ph)
+    area = None
+    if theirs is not None:
+        _, lab = cv2.connectedComponents((theirs[y0:y1, x0:x1] >= 0.5).astype(np.uint8))
+        k = lab[cy - y0, cx - x0]
+        area = lab == k if k > 0 else None
+    if area is None:
+        disc = np.zeros((y1 - y0, x1 - x0), np.uint8)
+        cv2.circle(disc, (cx - x0, cy - y0), max(1, int(round(0.5 * c.radius_px * f))), 1, -1)
+        area = disc > 0
+    return float(network[y0:y1, x0:x1][area].mean())
 
 
 class HMADetector:
@@ -421,7 +454,7 @@ class HMADetector:
         pm = self.probability(gray)
         dets, prob = self._instances(gray, pm.prob, pm.factor, seeds)
         if s.classical_markers:
-            dets, prob = _with_classical_markers(dets, prob, pm.factor, classical)
+            dets, prob = _with_classical_markers(dets, prob, pm.factor, classical, pm.prob, s.classical_min_support)
         dets.sort(key=lambda d: -d.score)
         return DetectionResult(detections=dets, image_size=(w, h), probability=prob,
                                seconds=time.perf_counter() - t0,

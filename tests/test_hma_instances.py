@@ -12,7 +12,7 @@ from cpdetect.errors import InputError
 from learned.adapter import HMADetector
 from learned.instances import (INSTANCE_FEATURES, INSTANCE_FILE, SYMMETRY_FEATURES, InstanceModel, blob_features,
                                fit_instance_model, load_instance_model)
-from test_learned_detector import OracleBackend, blurred_noisy_marker, rendered
+from test_learned_detector import OracleBackend, SoftBackend, blurred_noisy_marker, rendered
 
 
 def _model(bias: float, threshold: float = 0.5, **weights: float) -> InstanceModel:
@@ -180,19 +180,30 @@ def test_classical_seeds_keep_a_confirmed_blob_and_add_no_blob_of_their_own():
     assert [b.centre.classical for b in blobs] == [False]
 
 
+def _first_and_faint_second():
+    """The two markers, and a P(marker) map: 1 on the first marker, 0.2 on the second (below the
+    blob threshold: the network has a hint of it but no instance)."""
+    img, mask, centres = _two_markers()
+    _, mask_b, _ = rendered("circle", center=centres[1], radius=24.0, angle=1.1, shape=(200, 320))
+    soft = np.where(mask > 0, 1.0, np.where(mask_b > 0, 0.2, 0.0)).astype(np.float32)
+    soft[:, :170] = np.where(mask[:, :170] > 0, 1.0, 0.0)
+    return img, mask, soft, centres
+
+
 def test_classical_markers_add_what_the_network_missed():
-    # the network's map shows the first marker only: with classical_markers the classical detector's
-    # second marker is added, with its outline in the map; the first stays exactly as it was
-    img, mask, (first, second) = _two_markers()
+    # the network's map shows the first marker only, and a hint of the second: with
+    # classical_markers the classical detector's second marker is added, with its outline in the
+    # map; the first stays exactly as it was
+    img, _, soft, (first, second) = _first_and_faint_second()
     keep = _model(5.0)
-    alone = HMADetector.with_backend(OracleBackend(mask), instances=keep).detect(img)
-    both = HMADetector.with_backend(OracleBackend(mask), instances=keep, classical_markers=True).detect(img)
+    alone = HMADetector.with_backend(SoftBackend(soft), instances=keep).detect(img)
+    both = HMADetector.with_backend(SoftBackend(soft), instances=keep, classical_markers=True).detect(img)
     assert len(alone.detections) == 1 and len(both.detections) == 2
     assert alone.detections[0] in both.detections
     added = [d for d in both.detections if d not in alone.detections][0]
     assert math.hypot(added.x - second[0], added.y - second[1]) < 0.1 and added.type == "circle"
     cx, cy = round(second[0]), round(second[1])
-    assert alone.probability[cy, cx] < 0.1 and both.probability[cy, cx] > 0.9
+    assert alone.probability[cy, cx] < 0.3 and both.probability[cy, cx] > 0.9
     assert np.array_equal(alone.probability[:, :170], both.probability[:, :170])
     # a marker the network found already (within half the smaller radius) is not added twice
     from cpdetect.types import DetectionResult, MarkerDetection
@@ -203,6 +214,38 @@ def test_classical_markers_add_what_the_network_missed():
                               MarkerDetection(111.0, 50.0, 0.8, "square", 20.0, 0.05)], (200, 100), None)
     got, prob = _with_classical_markers(mine, np.zeros((100, 200), np.float32), 1.0, theirs)
     assert [d.x for d in got] == [100.0, 111.0] and not prob.any()
+
+
+def test_a_classical_marker_the_network_sees_nothing_of_is_not_added():
+    # no trace of the second marker in the network's map (P about 3e-4 there): the network vetoes it,
+    # unless classical_min_support is 0
+    img, mask, (first, second) = _two_markers()
+    keep = _model(5.0)
+    vetoed = HMADetector.with_backend(OracleBackend(mask), instances=keep, classical_markers=True).detect(img)
+    assert len(vetoed.detections) == 1
+    assert math.hypot(vetoed.detections[0].x - first[0], vetoed.detections[0].y - first[1]) < 0.1
+    cx, cy = round(second[0]), round(second[1])
+    assert vetoed.probability[cy, cx] < 0.01
+    union = HMADetector.with_backend(OracleBackend(mask), instances=keep, classical_markers=True,
+                                     classical_min_support=0.0).detect(img)
+    assert len(union.detections) == 2 and union.probability[cy, cx] > 0.9
+
+
+def test_network_support_is_the_mean_over_the_classical_outline():
+    from cpdetect.types import MarkerDetection
+    from learned.adapter import _network_support
+
+    theirs = np.zeros((100, 200), np.float32)
+    theirs[30:70, 80:120] = 1.0  # the classical outline: a 40 x 40 square around (99.5, 49.5)
+    network = np.zeros_like(theirs)
+    network[30:50, 80:120] = 0.5  # the network sees the upper half at P 0.5
+    network[0:10, :] = 1.0  # elsewhere, outside the outline: does not count
+    c = MarkerDetection(99.5, 49.5, 0.9, "square", 20.0, 0.05)
+    assert _network_support(network, theirs, 1.0, c) == pytest.approx(0.25, abs=1e-6)
+    # no classical map: a disc of half the radius (10 px) around the centre, whose top two rows
+    # (about 10 of its 317 pixels) lie above the part the network sees
+    c2 = MarkerDetection(99.5, 38.5, 0.9, "square", 20.0, 0.05)
+    assert 0.47 <= _network_support(network, None, 1.0, c2) < 0.5
 
 
 def test_a_classical_marker_off_the_centre_does_not_confirm_it():
