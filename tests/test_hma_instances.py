@@ -242,6 +242,9 @@ def test_network_support_is_the_mean_over_the_classical_outline():
     network[0:10, :] = 1.0  # elsewhere, outside the outline: does not count
     c = MarkerDetection(99.5, 49.5, 0.9, "square", 20.0, 0.05)
     assert _network_support(network, theirs, 1.0, c) == pytest.approx(0.25, abs=1e-6)
+    # the maps at half the image's resolution: the same marker, twice as large in image pixels
+    big = MarkerDetection(199.5, 99.5, 0.9, "square", 40.0, 0.05)
+    assert _network_support(network, theirs, 0.5, big) == pytest.approx(0.25, abs=1e-6)
     # no classical map: a disc of half the radius (10 px) around the centre, whose top two rows
     # (about 10 of its 317 pixels) lie above the part the network sees
     c2 = MarkerDetection(99.5, 38.5, 0.9, "square", 20.0, 0.05)
