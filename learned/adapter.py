@@ -152,8 +152,10 @@ class HMASettings:
     classical_markers: also run the classical detector on the image and report its markers where
         the network found none (no hma marker within half the smaller radius, 3 px at least), with
         their classical score, type and centre, and their outline filled into the probability map
-        (the larger of the two maps within 1.5 radii). Off by default: it is a union of the two
-        detectors, not the network's own figures (TRAINING.md gives both).
+        (the larger of the two maps within 1.5 radii); and a blob that yields no marker is cleared
+        from the map even where the network is sure of it (``clear_rejected_below``) unless a
+        classical marker lies on it. Off by default: it is a union of the two detectors, not the
+        network's own figures (TRAINING.md gives both).
     classical_min_support: with classical_markers, a classical marker is added only where the
         network's own map (before rejected blobs are cleared) averages at least this P(marker) over
         the marker's classical outline: the network vetoes what it sees nothing of (0: no veto). On
@@ -452,7 +454,8 @@ class HMADetector:
             raise ValueError(f"image too small: {gray.shape}")
         h, w = gray.shape
         pm = self.probability(gray)
-        dets, prob = self._instances(gray, pm.prob, pm.factor, seeds)
+        dets, prob = self._instances(gray, pm.prob, pm.factor, seeds,
+                                     classical.detections if s.classical_markers else None)
         if s.classical_markers:
             dets, prob = _with_classical_markers(dets, prob, pm.factor, classical, pm.prob, s.classical_min_support)
         dets.sort(key=lambda d: -d.score)
@@ -514,19 +517,26 @@ class HMADetector:
         return out, labels
 
     def _instances(self, gray: np.ndarray, prob: np.ndarray, f: float,
-                   seeds: list[MarkerDetection] | None = None) -> tuple[list[MarkerDetection], np.ndarray]:
+                   seeds: list[MarkerDetection] | None = None,
+                   witnesses: list[MarkerDetection] | None = None) -> tuple[list[MarkerDetection], np.ndarray]:
         """The marker instances, and the probability map with the rejected blobs cleared (unless the
-        network is sure of them, ``clear_rejected_below``)."""
+        network is sure of them, ``clear_rejected_below``, and, when ``witnesses`` is given, one of
+        those markers lies on the blob)."""
         s = self.settings
         h, w = gray.shape
         model = self.instance_model
         cut = (s.instance_threshold if s.instance_threshold is not None else model.threshold) if model else None
         blobs, labels = self.candidates(gray, prob, f, seeds=seeds)
+        ph, pw = labels.shape
+        witnessed = None if witnesses is None else {
+            int(labels[min(max(int(round((d.y + 0.5) * f - 0.5)), 0), ph - 1),
+                       min(max(int(round((d.x + 0.5) * f - 0.5)), 0), pw - 1)]) for d in witnesses}
         out: list[MarkerDetection] = []
         rejected: list[int] = []
         for b in blobs:
             # a blob that yields no marker is cleared from the map unless the network is sure of it
-            unsure = b.mean_p < s.clear_rejected_below
+            # (and a witness, when there are any to ask, saw a marker on it too)
+            unsure = b.mean_p < s.clear_rejected_below or (witnessed is not None and b.label not in witnessed)
             cx, cy = b.centroid
             score = float(np.clip(b.mean_p, 0.0, 1.0))
             sigma = max(0.5, 0.25 * b.radius)

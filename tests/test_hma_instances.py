@@ -231,6 +231,27 @@ def test_a_classical_marker_the_network_sees_nothing_of_is_not_added():
     assert len(union.detections) == 2 and union.probability[cy, cx] > 0.9
 
 
+def test_with_classical_markers_a_blob_no_marker_comes_from_stays_only_where_one_is_seen():
+    # a blob the network is sure of over plain background (no X-corner: no marker) stays in the map
+    # by default (clear_rejected_below); with classical_markers it is cleared, as no classical marker
+    # lies on it, while a rejected blob the classical detector does see a marker on stays
+    img, mask, (first, second) = _two_markers()
+    img[140:200, 10:70] = 116  # flat: no corner to refine a centre on
+    sure = mask.astype(np.float32).copy()
+    sure[150:190, 20:60] = 1.0
+    keep, drop = _model(5.0), _model(-5.0)
+    alone = HMADetector.with_backend(OracleBackend(sure), instances=keep).detect(img)
+    assert len(alone.detections) == 1 and alone.probability[170, 40] > 0.9
+    union = HMADetector.with_backend(OracleBackend(sure), instances=keep, classical_markers=True).detect(img)
+    assert len(union.detections) == 1 and union.probability[170, 40] < 0.01
+    cx, cy = round(first[0]), round(first[1])
+    assert union.probability[cy, cx] > 0.9
+    # the instance model drops the marker's blob too: the classical marker on it keeps it in the map
+    dropped = HMADetector.with_backend(OracleBackend(sure), instances=drop, classical_markers=True).detect(img)
+    assert dropped.probability[170, 40] < 0.01 and dropped.probability[cy, cx] > 0.9
+    assert [round(d.x) for d in dropped.detections] == [round(first[0])]
+
+
 def test_network_support_is_the_mean_over_the_classical_outline():
     from cpdetect.types import MarkerDetection
     from learned.adapter import _network_support
