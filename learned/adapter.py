@@ -348,12 +348,14 @@ def _with_classical_markers(dets: list[MarkerDetection], prob: np.ndarray, f: fl
     outline (see :func:`_network_support`)."""
     added = [c for c in classical.detections
              if all(math.hypot(c.x - d.x, c.y - d.y) >= max(3.0, 0.5 * min(c.radius_px, d.radius_px)) for d in dets)]
-    ph, pw = prob.shape
-    theirs = classical.probability_at(pw, ph)
-    if added and network is not None and min_support > 0:
-        added = [c for c in added if _network_support(network, theirs, f, c) >= min_support]
     if not added:
         return dets, prob
+    ph, pw = prob.shape
+    theirs = classical.probability_at(pw, ph)
+    if network is not None and min_support > 0:
+        added = [c for c in added if _network_support(network, theirs, f, c) >= min_support]
+        if not added:
+            return dets, prob
     near = np.zeros((ph, pw), np.uint8)
     for c in added:
         centre = (int(round((c.x + 0.5) * f - 0.5)), int(round((c.y + 0.5) * f - 0.5)))
@@ -368,8 +370,7 @@ def _network_support(network: np.ndarray, theirs: np.ndarray | None, f: float, c
     classical map (``theirs``, >= 0.5) under its centre, else a disc of half its radius (map pixels,
     ``f`` per image pixel)."""
     ph, pw = network.shape
-    cx = min(max(int(round((c.x + 0.5) * f - 0.5)), 0), pw - 1)
-    cy = min(max(int(round((c.y + 0.5) * f - 0.5)), 0), ph - 1)
+    cx, cy = _map_pixel(c.x, c.y, f, network.shape)
     r = int(math.ceil(2.0 * c.radius_px * f)) + 2
     x0, y0, x1, y1 = max(cx - r, 0), max(cy - r, 0), min(cx + r + 1, pw), min(cy + r + 1, ph)
     area = None
@@ -382,6 +383,14 @@ def _network_support(network: np.ndarray, theirs: np.ndarray | None, f: float, c
         cv2.circle(disc, (cx - x0, cy - y0), max(1, int(round(0.5 * c.radius_px * f))), 1, -1)
         area = disc > 0
     return float(network[y0:y1, x0:x1][area].mean())
+
+
+def _map_pixel(x: float, y: float, f: float, shape: tuple[int, int]) -> tuple[int, int]:
+    """(column, row) of the map pixel (``f`` per image pixel, map of ``shape`` (rows, columns))
+    nearest to the image point (x, y), clipped into the map."""
+    col = int(round((x + 0.5) * f - 0.5))
+    row = int(round((y + 0.5) * f - 0.5))
+    return min(max(col, 0), shape[1] - 1), min(max(row, 0), shape[0] - 1)
 
 
 class HMADetector:
@@ -527,10 +536,8 @@ class HMADetector:
         model = self.instance_model
         cut = (s.instance_threshold if s.instance_threshold is not None else model.threshold) if model else None
         blobs, labels = self.candidates(gray, prob, f, seeds=seeds)
-        ph, pw = labels.shape
         witnessed = None if witnesses is None else {
-            int(labels[min(max(int(round((d.y + 0.5) * f - 0.5)), 0), ph - 1),
-                       min(max(int(round((d.x + 0.5) * f - 0.5)), 0), pw - 1)]) for d in witnesses}
+            int(labels[r, c]) for c, r in (_map_pixel(d.x, d.y, f, labels.shape) for d in witnesses)}
         out: list[MarkerDetection] = []
         rejected: list[int] = []
         for b in blobs:
