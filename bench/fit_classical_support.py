@@ -7,7 +7,9 @@ scripts), the instance step as the detector runs it, and the classical detector;
 marker the union would add with its network support (mean P(marker) over its classical outline, see
 ``learned.adapter._network_support``) and whether a true marker lies there (cpdetect.evaluate.
 tolerance_px); then, for each cut, the markers kept, true and false. The interval of cuts with the
-best marker count (true - false) goes to bench/results/fit_classical_support.json. Nothing is written
+best marker count (true - false) goes to bench/results/fit_classical_support.json, with the pixel IoU
+of the map after the instance step under both rules of clearing rejected blobs: the network's
+sureness alone, and the union's (a classical marker must lie on the blob). Nothing is written
 into the model folder: the setting's default is chosen by hand from the interval.
 
     .venv/bin/python bench/fit_classical_support.py --data /work/runs/dev808 --data /work/runs/dev909
@@ -20,6 +22,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 from fit_hma_instances import probability_maps
 from train_split import train_split_dataset
@@ -27,8 +30,12 @@ from train_split import train_split_dataset
 RESULTS = Path(__file__).parent / "results" / "fit_classical_support.json"
 
 
-def added_markers(det, classical, ds, maps) -> list[dict]:
-    """Every classical marker the union would add on ``ds``: its support, score, radius and truth."""
+def added_markers(det, classical, ds, maps, pixels: dict) -> list[dict]:
+    """Every classical marker the union would add on ``ds``: its support, score, radius and truth.
+    ``pixels``: per rule of clearing the map ("network": the network's sureness, "witnessed": the
+    union's, a classical marker on the blob), [tp, fp, fn] pixel counts (P >= 0.5) of the map after
+    the instance step, added to in place (images with a mask only)."""
+    from cpdetect.dataset import read_mask
     from cpdetect.evaluate import tolerance_px
     from cpdetect.imageio import read_image
     from learned.adapter import _network_support, _with_classical_markers
@@ -39,6 +46,16 @@ def added_markers(det, classical, ds, maps) -> list[dict]:
         gray = read_image(path, gray=True)
         dets, cleared = det._instances(gray, prob, f)
         theirs = classical.detect(str(path))
+        if item.mask:
+            truth = read_mask(ds.root / item.mask, gray.shape)
+            _, witnessed = det._instances(gray, prob, f, None, theirs.detections)
+            for rule, m in (("network", cleared), ("witnessed", witnessed)):
+                pred = (m if m.shape == truth.shape else
+                        cv2.resize(m, truth.shape[::-1], interpolation=cv2.INTER_LINEAR)) >= 0.5
+                counts = pixels.setdefault(rule, [0, 0, 0])
+                counts[0] += int((pred & truth).sum())
+                counts[1] += int((pred & ~truth).sum())
+                counts[2] += int((~pred & truth).sum())
         union, _ = _with_classical_markers(dets, cleared, f, theirs)
         tmap = theirs.probability_at(prob.shape[1], prob.shape[0])
         for m in union[len(dets):]:
@@ -93,21 +110,27 @@ def main(argv=None) -> int:
     t0 = time.time()
     det = HMADetector(model_dir=str(model_dir))
     classical = ClassicalDetector(probability_map=True)
-    rows, roots = [], []
+    rows, roots, pixel_iou = [], [], {}
     for data in args.data or [None]:
         ds = train_split_dataset(data, args.n, args.seed, "cpdetect_fit_support_")
         roots.append(str(ds.root))
         maps = probability_maps(det, ds, ds.root / "probability_maps")
-        rows += added_markers(det, classical, ds, maps)
+        pixels: dict = {}
+        rows += added_markers(det, classical, ds, maps, pixels)
+        pixel_iou[str(ds.root)] = {rule: tp / max(tp + fp + fn, 1) for rule, (tp, fp, fn) in pixels.items()}
     table = cut_table(rows)
     best = best_interval(rows, table)
     report = {"model_dir": str(model_dir), "data": roots, "added": len(rows),
               "added_true": sum(r["true"] for r in rows), "best": best, "cuts": table,
-              "markers": rows, "seconds": time.time() - t0}
+              "pixel_iou_after_instances": pixel_iou, "markers": rows, "seconds": time.time() - t0}
     from cpdetect.fileio import write_json_atomic
 
     write_json_atomic(args.out, report)
     print(f"{len(rows)} classical markers added by the union, {report['added_true']} of them true")
+    for root, iou in pixel_iou.items():
+        print(f"{root}: pixel IoU of the map after the instance step, blobs cleared by the network's "
+              f"sureness {iou.get('network', math.nan):.4f}, unless a classical marker lies on them "
+              f"{iou.get('witnessed', math.nan):.4f}")
     print(f"best cut: any in ({best['above']:.4f}, {best['up_to']:.4f}]: {best['true']} true and "
           f"{best['false']} false kept; figures in {args.out}")
     return 0
