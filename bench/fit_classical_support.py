@@ -22,8 +22,6 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
-import numpy as np
 from fit_hma_instances import probability_maps
 from train_split import train_split_dataset
 
@@ -33,10 +31,11 @@ RESULTS = Path(__file__).parent / "results" / "fit_classical_support.json"
 def added_markers(det, classical, ds, maps, pixels: dict) -> list[dict]:
     """Every classical marker the union would add on ``ds``: its support, score, radius and truth.
     ``pixels``: per rule of clearing the map ("network": the network's sureness, "witnessed": the
-    union's, a classical marker on the blob), [tp, fp, fn] pixel counts (P >= 0.5) of the map after
-    the instance step, added to in place (images with a mask only)."""
+    union's, a classical marker on the blob), the :class:`cpdetect.evaluate.PixelCounts` of the map
+    after the instance step, added to in place (images with a mask only)."""
     from cpdetect.dataset import read_mask
-    from cpdetect.evaluate import tolerance_px
+    from cpdetect.evaluate import PixelCounts, tolerance_px
+    from cpdetect.types import DetectionResult
     from cpdetect.imageio import read_image
     from learned.adapter import _network_support, _with_classical_markers
 
@@ -49,13 +48,9 @@ def added_markers(det, classical, ds, maps, pixels: dict) -> list[dict]:
         if item.mask:
             truth = read_mask(ds.root / item.mask, gray.shape)
             _, witnessed = det._instances(gray, prob, f, None, theirs.detections)
+            h, w = truth.shape
             for rule, m in (("network", cleared), ("witnessed", witnessed)):
-                pred = (m if m.shape == truth.shape else
-                        cv2.resize(m, truth.shape[::-1], interpolation=cv2.INTER_LINEAR)) >= 0.5
-                counts = pixels.setdefault(rule, [0, 0, 0])
-                counts[0] += int((pred & truth).sum())
-                counts[1] += int((pred & ~truth).sum())
-                counts[2] += int((~pred & truth).sum())
+                pixels.setdefault(rule, PixelCounts()).add(DetectionResult([], (w, h), m).probability_at(w, h), truth)
         union, _ = _with_classical_markers(dets, cleared, f, theirs)
         tmap = theirs.probability_at(prob.shape[1], prob.shape[0])
         for m in union[len(dets):]:
@@ -117,7 +112,7 @@ def main(argv=None) -> int:
         maps = probability_maps(det, ds, ds.root / "probability_maps")
         pixels: dict = {}
         rows += added_markers(det, classical, ds, maps, pixels)
-        pixel_iou[str(ds.root)] = {rule: tp / max(tp + fp + fn, 1) for rule, (tp, fp, fn) in pixels.items()}
+        pixel_iou[str(ds.root)] = {rule: counts.metrics()["iou"] for rule, counts in pixels.items()}
     table = cut_table(rows)
     best = best_interval(rows, table)
     report = {"model_dir": str(model_dir), "data": roots, "added": len(rows),
