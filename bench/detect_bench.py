@@ -172,7 +172,7 @@ def bench_seeded_refiners(datasets, seed: int) -> dict:
 
     rng = np.random.default_rng(seed)
     out = {"cornerSubPix_win5": [], "cornerSubPix_adaptive": [], "refine_center_auto": [], "refine_center_hough": [],
-           "refine_center_saddle": []}
+           "refine_center_saddle": [], "refine_center_model": []}
     dx_auto = []
     crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
     for ds in datasets:
@@ -187,7 +187,7 @@ def bench_seeded_refiners(datasets, seed: int) -> dict:
                     p = s.reshape(1, 1, 2).astype(np.float32)
                     p = cv2.cornerSubPix(g, p, (win, win), (-1, -1), crit)
                     out[key].append(float(np.hypot(p[0, 0, 0] - t.x, p[0, 0, 1] - t.y)))
-                for method in ("auto", "hough", "saddle"):
+                for method in ("auto", "hough", "saddle", "model"):
                     r = refine_center(g, s[0], s[1], t.radius_px, method=method)
                     out[f"refine_center_{method}"].append(float(np.hypot(r.x - t.x, r.y - t.y)))
                     if method == "auto":

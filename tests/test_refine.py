@@ -7,7 +7,8 @@ import pytest
 
 from cpdetect.markers import MarkerSpec, apply_homography, frontal_homography, plane_homography, projected_center, \
     projected_radius, render_marker
-from cpdetect.refine import METHODS, default_window, outline_window, refine_center, refine_symmetry
+from cpdetect.refine import METHODS, default_window, outline_window, refine_center, refine_in_outline, refine_model, \
+    refine_symmetry
 
 
 def render(center, radius, angle=0.0, marker_type="square", shape=(160, 160), tilt_deg=0.0, tilt_axis=0.3,
@@ -286,3 +287,53 @@ def test_outline_window_lowers_the_error_of_tilted_noisy_markers():
         wide.append(np.hypot(b.x - c[0], b.y - c[1]))
     base, wide = np.array(base), np.array(wide)
     assert 0.005 < wide.mean() < 0.8 * base.mean() and base.mean() < 0.1
+
+
+@pytest.mark.parametrize("marker_type", ["square", "circle", "diagonal"])
+def test_model_fit_exact_without_noise_under_tilt(marker_type):
+    img, c, r, poly = render((90.3, 89.6), 25.0, angle=0.6, marker_type=marker_type, tilt_deg=50.0, tilt_axis=0.8,
+                             blur=0.9, shape=(180, 180), outline=True)
+    J, w = outline_window(poly, c[0] + 0.4, c[1] - 0.3)
+    res = refine_model(img, c[0] + 0.4, c[1] - 0.3, r, window_px=w, shape_hint=J)
+    assert res.ok and res.method == "model", res.reason
+    assert np.hypot(res.x - c[0], res.y - c[1]) < 0.01
+    assert 0.004 < res.sigma_px < 0.02
+    # as a method of refine_center: "auto" first, then the model from there
+    res = refine_center(img, c[0] + 1.0, c[1] + 0.8, r, method="model")
+    assert res.ok and np.hypot(res.x - c[0], res.y - c[1]) < 0.02
+
+
+def test_model_fit_beats_the_symmetry_fit_on_noisy_markers_and_its_sigma_is_honest():
+    rng = np.random.default_rng(21)
+    sym, mod, sig = [], [], []
+    for k in range(16):
+        c0 = (90.0 + rng.uniform(-0.5, 0.5), 90.0 + rng.uniform(-0.5, 0.5))
+        img, c, r, poly = render(c0, 20.0, angle=rng.uniform(0, np.pi), marker_type=("square", "circle")[k % 2],
+                                 tilt_deg=35.0, tilt_axis=rng.uniform(0, np.pi), noise=6.0, blur=1.0, rng=rng,
+                                 shape=(180, 180), outline=True)
+        seed = c + rng.uniform(-0.7, 0.7, 2)
+        a = refine_center(img, seed[0], seed[1], r)
+        b = refine_in_outline(img, a.x, a.y, r, a.sigma_px, poly) or a
+        m = refine_in_outline(img, a.x, a.y, r, a.sigma_px, poly, model=True) or a
+        assert a.ok and b.ok and m.ok
+        sym.append(np.hypot(b.x - c[0], b.y - c[1]))
+        mod.append(np.hypot(m.x - c[0], m.y - c[1]))
+        sig.append(m.sigma_px)
+    sym, mod = np.array(sym), np.array(mod)
+    # noise of 6 grey levels shows, and the model fit takes a clear share off the symmetry fit's error
+    assert 0.005 < mod.mean() < 0.85 * sym.mean() and sym.mean() < 0.1
+    ratio = np.sqrt(np.mean(mod ** 2) / 2) / np.mean(sig)
+    assert 0.5 < ratio < 2.0
+
+
+def test_model_fit_refuses_what_is_not_a_checker():
+    rng = np.random.default_rng(2)
+    flat = np.full((100, 100), 120.0, np.float32) + rng.normal(0, 2.0, (100, 100)).astype(np.float32)
+    assert not refine_model(flat, 50.0, 50.0, 20.0).ok
+    # one straight edge: two sectors, not four
+    edge = np.where(np.arange(100)[None, :] < 50.3, 60.0, 200.0).repeat(100, 0).astype(np.float32)
+    res = refine_model(edge, 50.0, 50.0, 20.0)
+    assert not res.ok and "four sectors" in res.reason
+    # a window off the image
+    img, c, r = render((80.3, 79.6), 20.0, angle=0.3)
+    assert not refine_model(img, -40.0, -40.0, r).ok
