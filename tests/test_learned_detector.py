@@ -329,16 +329,20 @@ def blurred_noisy_marker():
 
 def test_uncertain_refinements_are_dropped():
     noisy, mask = blurred_noisy_marker()
-    loose = HMADetector.with_backend(OracleBackend(mask), max_sigma_px=100.0).detect(noisy).detections
+    # the bounds apply to the refinement's sigma; the model fit polishes kept centres after that,
+    # and would report a smaller sigma than the one the bounds saw
+    loose = HMADetector.with_backend(OracleBackend(mask), max_sigma_px=100.0, model_fit=False).detect(noisy).detections
     assert len(loose) == 1
     sigma = loose[0].sigma_px
     assert sigma > 0.05
+    polished = HMADetector.with_backend(OracleBackend(mask), max_sigma_px=100.0).detect(noisy).detections
+    assert len(polished) == 1 and polished[0].sigma_px <= sigma
     strict = HMADetector.with_backend(OracleBackend(mask), max_sigma_px=0.5 * sigma,
                                       max_sigma_verified_px=0.5 * sigma).detect(noisy).detections
     assert strict == []
     # where the marker model confirms the centre, a looser bound applies
     confirmed = HMADetector.with_backend(OracleBackend(mask), max_sigma_px=0.5 * sigma,
-                                         max_sigma_verified_px=2.0 * sigma).detect(noisy).detections
+                                         max_sigma_verified_px=2.0 * sigma, model_fit=False).detect(noisy).detections
     # (its type is not asked for: a blur of a quarter of the radius rounds the square's corners into
     # an outline that fits a circle better, and the classical model now types by the outline's shape)
     assert len(confirmed) == 1 and confirmed[0].type in ("square", "circle")
