@@ -433,9 +433,9 @@ class _CheckerModel:
     grey values ``obs``, each residual times ``weights``; parameters p: centre (px, py), the two
     lines' angles, mean level, half contrast, log blur, illumination gradient (gx, gy)."""
 
-    def __init__(self, X: np.ndarray, Y: np.ndarray, obs: np.ndarray, weights: np.ndarray | None = None):
+    def __init__(self, X: np.ndarray, Y: np.ndarray, obs: np.ndarray):
         self.X, self.Y, self.obs = X, Y, obs
-        self.weights = np.ones(X.size) if weights is None else weights
+        self.weights = np.ones(X.size)
         self.last = None  # (p, parts): LM asks for the Jacobian where it just took the residuals
 
     def _parts(self, p: np.ndarray) -> tuple:
@@ -477,7 +477,10 @@ class _CheckerModel:
 def refine_model(gray: np.ndarray, x0: float, y0: float, radius_px: float, window_px: float | None = None,
                  max_shift_px: float | None = None, shape_hint: np.ndarray | None = None) -> RefineResult:
     """Least-squares fit of a blurred two-line checker to the raw pixels of the window (see module
-    doc); the seed must already lie within about a pixel of the centre (e.g. a symmetry fit's)."""
+    doc); the seed (x0, y0) must already lie within about a pixel of the centre (e.g. a symmetry
+    fit's). window_px: the window's radius, or semi-major axis with ``shape_hint`` (as for
+    :func:`refine_symmetry`; default :func:`default_window`, at most MODEL_MAX_WINDOW_PX);
+    max_shift_px: how far the centre may move from the seed (default 1 px)."""
     from scipy.optimize import least_squares
 
     gray = _check_inputs(gray, x0, y0, radius_px)
@@ -768,9 +771,10 @@ def refine_in_outline(gray: np.ndarray, x: float, y: float, radius_px: float, si
     new fit when it holds within 1 px with a smaller sigma, else None (keep the first). A disc sized
     by the radius alone must stay inside the pattern at any tilt, so on most markers it uses a
     fraction of the signal this window does. With ``model``, :func:`refine_model` is then fitted on
-    the same ellipse (widened by the 1.5 px the symmetry fit keeps off the outline for its
-    smoothing: the model reads raw pixels) from the better of the two, and kept where its sigma is
-    the smallest; only where that sigma is over MODEL_MIN_SIGMA_PX (sharp centres gain nothing)."""
+    the same ellipse widened by 1.5 px (the symmetry fit keeps 1 px and two of its smoothing sigmas
+    off the outline; the model reads raw pixels) from the better of the two, and kept where its
+    sigma is the smallest; only where that sigma is over MODEL_MIN_SIGMA_PX (sharp centres gain
+    nothing)."""
     win = outline_window(outline, x, y, frac)
     if win is None:
         return None

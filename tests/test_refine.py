@@ -7,8 +7,8 @@ import pytest
 
 from cpdetect.markers import MarkerSpec, apply_homography, frontal_homography, plane_homography, projected_center, \
     projected_radius, render_marker
-from cpdetect.refine import METHODS, default_window, outline_window, refine_center, refine_in_outline, refine_model, \
-    refine_symmetry
+from cpdetect.refine import METHODS, MODEL_MIN_SIGMA_PX, default_window, outline_window, refine_center, \
+    refine_in_outline, refine_model, refine_symmetry
 
 
 def render(center, radius, angle=0.0, marker_type="square", shape=(160, 160), tilt_deg=0.0, tilt_axis=0.3,
@@ -337,3 +337,19 @@ def test_model_fit_refuses_what_is_not_a_checker():
     # a window off the image
     img, c, r = render((80.3, 79.6), 20.0, angle=0.3)
     assert not refine_model(img, -40.0, -40.0, r).ok
+
+
+def test_model_fit_skipped_where_the_centre_is_already_sharp():
+    # noise-free: the symmetry fit's sigma sits at its floor (0.01 px), under MODEL_MIN_SIGMA_PX
+    img, c, r, poly = render((90.3, 89.6), 25.0, angle=0.6, tilt_deg=30.0, blur=0.9, shape=(180, 180), outline=True)
+    a = refine_center(img, c[0] + 0.5, c[1] - 0.4, r)
+    assert a.ok and a.sigma_px < MODEL_MIN_SIGMA_PX
+    m = refine_in_outline(img, a.x, a.y, r, a.sigma_px, poly, model=True)
+    assert m is None or m.method == "symmetry"
+    # with noise the symmetry fit is less sure, and the model fit runs and wins
+    img, c, r, poly = render((90.3, 89.6), 25.0, angle=0.6, tilt_deg=30.0, blur=0.9, shape=(180, 180), outline=True,
+                             noise=6.0, rng=np.random.default_rng(5))
+    a = refine_center(img, c[0] + 0.5, c[1] - 0.4, r)
+    m = refine_in_outline(img, a.x, a.y, r, a.sigma_px, poly, model=True)
+    assert m is not None and m.method == "model" and MODEL_MIN_SIGMA_PX < a.sigma_px
+    assert np.hypot(m.x - c[0], m.y - c[1]) < 0.08
