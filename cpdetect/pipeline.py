@@ -120,6 +120,10 @@ class GeorefSettings:
             raise UsageError(f"unknown loss {self.loss!r}; valid: huber, cauchy, soft_l1, linear")
         if self.min_views < 2:
             raise UsageError("min_views must be at least 2")
+        from .refine import METHODS
+
+        if self.refine_method not in METHODS:
+            raise UsageError(f"unknown refine_method {self.refine_method!r}; valid: {', '.join(METHODS)}")
 
 
 @dataclass(frozen=True)

@@ -48,7 +48,7 @@ import numpy as np
 
 from cpdetect.centre_reach import CENTRE_REACH_MIN, centre_reach
 from cpdetect.detector import as_gray_uint8, settings_from_dataclass
-from cpdetect.refine import refine_in_outline
+from cpdetect.refine import METHODS, refine_in_outline
 from cpdetect.types import DetectionResult, MarkerDetection
 
 from .centre_choice import CentreRanker, load_centre_ranker
@@ -90,7 +90,7 @@ class HMASettings:
     image is downscaled to it; None = full resolution). tile / overlap: tiling of the processing image
     (pixels) for bounded memory. min_radius_px: smallest instance kept (equal-area radius, image
     pixels). refine: centre refinement method of cpdetect.refine ("auto", "symmetry", "saddle",
-    "hough") or "none". drop_unrefined: drop instances where refinement finds no X-corner (blobs of
+    "hough", "model") or "none". drop_unrefined: drop instances where refinement finds no X-corner (blobs of
     texture are not markers). max_sigma_px: drop instances whose refined centre is less certain than
     this (image pixels): on the validation set (train-split backgrounds) 0.3 took false markers from
     17 to 4 for 5 of 89 true ones, most of them mislocated onto another corner. max_sigma_verified_px:
@@ -248,7 +248,7 @@ class HMASettings:
             raise ValueError("max_seeds must be >= 0")
         if self.type_by not in ("model", "shape"):
             raise ValueError(f"type_by must be model or shape, got {self.type_by!r}")
-        if self.refine not in ("auto", "symmetry", "saddle", "hough", "none"):
+        if self.refine not in METHODS + ("none",):
             raise ValueError(f"unknown refine method {self.refine!r}")
         if self.instance_model not in ("auto", "none"):
             raise ValueError(f"instance_model must be auto or none, got {self.instance_model!r}")

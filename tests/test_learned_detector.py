@@ -188,6 +188,9 @@ def test_settings_are_checked():
         HMADetector.with_backend(OracleBackend(np.zeros((4, 4))), max_sigma_verified_px=0.0)
     with pytest.raises(UsageError, match="outline_window"):
         get_detector("hma", outline_window=-1.0)
+    with pytest.raises(UsageError, match="refine method 'bogus'"):
+        get_detector("hma", refine="bogus")
+    assert HMADetector.with_backend(OracleBackend(np.zeros((4, 4))), refine="model").settings.refine == "model"
 
 
 def test_rejects_non_images():

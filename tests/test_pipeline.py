@@ -383,3 +383,12 @@ def test_a_bad_rejects_file_is_a_one_line_error_naming_it(site, tmp_path, capsys
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(path) in err[0] and words in err[0], err
     assert not out.exists()
+
+
+def test_settings_name_the_valid_refinement_methods():
+    from cpdetect.errors import UsageError
+    from cpdetect.pipeline import GeorefSettings
+
+    assert GeorefSettings(refine_method="model").refine_method == "model"
+    with pytest.raises(UsageError, match="unknown refine_method 'bogus'; valid: auto, symmetry"):
+        GeorefSettings(refine_method="bogus")
