@@ -353,3 +353,15 @@ def test_model_fit_skipped_where_the_centre_is_already_sharp():
     m = refine_in_outline(img, a.x, a.y, r, a.sigma_px, poly, model=True)
     assert m is not None and m.method == "model" and MODEL_MIN_SIGMA_PX < a.sigma_px
     assert np.hypot(m.x - c[0], m.y - c[1]) < 0.08
+
+
+@pytest.mark.parametrize("marker_type", ["square", "circle", "diagonal"])
+def test_model_fit_at_the_image_border(marker_type):
+    # centre 4 px above the bottom edge: the window loses its lower part, the fit still holds
+    img, c, r, poly = render((90.4, 89.7), 25.0, angle=0.3, marker_type=marker_type, tilt_deg=40.0, blur=0.9,
+                             shape=(200, 180), outline=True)
+    crop = img[:int(round(c[1] + 4.0))]
+    J, w = outline_window(poly, c[0] + 0.3, c[1] - 0.2)
+    res = refine_model(crop, c[0] + 0.3, c[1] - 0.2, r, window_px=w + 1.5, shape_hint=J)
+    assert res.ok, res.reason
+    assert np.hypot(res.x - c[0], res.y - c[1]) < 0.01
