@@ -146,13 +146,14 @@ class ClassicalSettings:
         on the same window (:func:`cpdetect.refine.refine_model`), kept where its sigma is the
         smaller, where that sigma is over 0.015 px (:data:`cpdetect.refine.MODEL_MIN_SIGMA_PX`). On
         the train-split dev sets (dev808, dev909) the centre error went from 0.0439 / 0.0467 px mean
-        and 0.129 / 0.128 p95 to 0.0352 / 0.0383 and 0.099 / 0.106, the same markers found (the
+        and 0.129 / 0.128 p95 to 0.0335 / 0.0357 and 0.091 / 0.102, the same markers found (the
         symmetry fit counts each noise sample twice on a smoothed copy, the model fit every raw
-        pixel once). Partly covered markers are where it does worse: 37 of 3,381 matched markers of
-        six sets moved over 0.1 px further off (most of them covered, up to 0.86 px), 61 came over
-        0.1 px closer; keeping the model fit only within 3 sigma of the symmetry fit blocked as many
-        good moves (dev808 mean 0.0364), and more robust passes changed nothing. Needs
-        ``outline_window`` > 0.
+        pixel once). Over those and four fresh test-split sets, 13 of 3,381 matched markers moved
+        over 0.1 px further off (up to 0.45 px), 54 came over 0.1 px closer. Before the first fit
+        down-weighted pixels unlike their mirror image (occluders), it was 37 against 61, up to
+        0.86 px, dev sets 0.0352 / 0.0383; keeping the fit only within 3 sigma of the symmetry fit
+        had blocked as many good moves as bad (dev808 0.0364), and more robust passes on the
+        residuals changed nothing. Needs ``outline_window`` > 0.
     type_trees: the type from gradient-boosted trees over the boundary's shape features
         (:mod:`cpdetect.marker_type`); False: the type of the smallest :func:`type_residuals`.
     retry_score: a candidate whose score is at least this but under ``min_score`` is verified again with

@@ -30,14 +30,14 @@ Methods (``method=``):
     as for ``"symmetry"``): I = m + A erf(u / (sqrt 2 b)) erf(v / (sqrt 2 b)) + g.(q - p), with u, v
     the signed distances of pixel q from two straight lines crossing at p (straight under any
     perspective), blur b and a linear illumination gradient g; Levenberg-Marquardt with analytic
-    derivatives, once more with Tukey weights (an occluder in the window). The model's error near
-    the centre under unequal blur along non-orthogonal lines is point symmetric about p, so it does
-    not move p. Unlike the symmetry fit, which compares the image with itself turned 180 degrees
+    derivatives, first with Tukey weights on the difference between each pixel and its mirror
+    image through the seed, then on the first fit's residuals (an occluder in the window). The
+    model's error near the centre under unequal blur along non-orthogonal lines is point symmetric
+    about p, so it does not move p. Unlike the symmetry fit, which compares the image with itself turned 180 degrees
     (each noise sample counted twice) on a smoothed copy, it uses every raw pixel once: on the
     noisy tilted markers of tests/test_refine.py 0.024 px mean error against the symmetry fit's
-    0.030 on the same outline window, and in the classical detector (``model_fit``) 0.035 / 0.038
-    against 0.044 / 0.047 px on two train-split dev sets. An occluder in the window can pull it
-    further than the symmetry fit. It needs a seed within about a pixel:
+    0.030 on the same outline window, and in the classical detector (``model_fit``) 0.034 / 0.036
+    against 0.044 / 0.047 px on two train-split dev sets. It needs a seed within about a pixel:
     ``refine_center(method="model")`` runs ``"auto"`` first and keeps whichever of the two has the
     smaller sigma.
 ``"auto"`` (default)
@@ -474,6 +474,32 @@ class _CheckerModel:
         return J * self.weights[:, None]
 
 
+def _tukey_sqrt(r: np.ndarray, least_cut: float = 0.0) -> np.ndarray:
+    """The square roots of Tukey's biweights of residuals ``r`` (NaN: weight 1) cut at 4.685 robust
+    standard deviations (from their median absolute value), or at ``least_cut`` if that is more,
+    for weighting residuals directly."""
+    a = np.abs(r)
+    known = np.isfinite(a)
+    if not known.any():
+        return np.ones(r.shape)
+    c = max(4.685 * (1.4826 * float(np.median(a[known])) + 1e-3), least_cut)
+    return np.where(known, 1.0 - np.clip(np.where(known, a, 0.0) / c, 0.0, 1.0) ** 2, 1.0)
+
+
+def _mirrored(gray: np.ndarray, X: np.ndarray, Y: np.ndarray, x0: float, y0: float, w: float) -> np.ndarray:
+    """The image at the mirror images (2 x0 - X, 2 y0 - Y) of pixels (X, Y) through (x0, y0), bilinear;
+    NaN where they fall off the image."""
+    import cv2
+
+    patch = _Patch(gray, x0, y0, int(math.ceil(w)) + 3)
+    mx = (2.0 * x0 - X - patch.x0).astype(np.float32).reshape(1, -1)
+    my = (2.0 * y0 - Y - patch.y0).astype(np.float32).reshape(1, -1)
+    out = cv2.remap(patch.data, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0].astype(np.float64)
+    hh, ww = patch.data.shape
+    out[(mx[0] < 0) | (my[0] < 0) | (mx[0] > ww - 1) | (my[0] > hh - 1)] = np.nan
+    return out
+
+
 def refine_model(gray: np.ndarray, x0: float, y0: float, radius_px: float, window_px: float | None = None,
                  max_shift_px: float | None = None, shape_hint: np.ndarray | None = None) -> RefineResult:
     """Least-squares fit of a blurred two-line checker to the raw pixels of the window (see module
@@ -509,14 +535,17 @@ def refine_model(gray: np.ndarray, x0: float, y0: float, radius_px: float, windo
     # parameters: centre (px), line angles, mean level, half contrast, log blur sigma (px), gradient
     p = np.array([x0, y0, a1, a2, mean, float(np.mean((obs - mean) * sign)), 0.0, 0.0, 0.0])
     full = _CheckerModel(X, Y, obs)
+    # the first fit down-weights the pixels unlike their mirror image through the seed (an occluder
+    # or a neighbour in the window: the pattern itself is point symmetric), as the symmetry fit does;
+    # cut at half the contrast at least: a seed a fraction of a pixel off leaves differences at the
+    # edges of a sharp, noise-free pattern, whose other pixels match to 0
+    full.weights = _tukey_sqrt(obs - _mirrored(gray, X, Y, x0, y0, w), least_cut=abs(p[5]))
     p = least_squares(full.residuals, p, jac=full.jacobian, method="lm", max_nfev=60).x
     if not np.all(np.isfinite(p)):
         return _fail(x0, y0, "model", "fit diverged")
-    # then on every pixel, with Tukey weights on the first fit's residuals (an occluder or a
-    # neighbour in the window)
-    r = full.residuals(p)
-    c = 4.685 * (1.4826 * float(np.median(np.abs(r))) + 1e-3)
-    full.weights = 1.0 - np.clip(np.abs(r) / c, 0.0, 1.0) ** 2  # the square root of Tukey's weight
+    # the second, from there, those far from the first fit
+    full.weights = np.ones(X.size)
+    full.weights = _tukey_sqrt(full.residuals(p))
     p = least_squares(full.residuals, p, jac=full.jacobian, method="lm", max_nfev=60).x
     if not np.all(np.isfinite(p)):
         return _fail(x0, y0, "model", "fit diverged")

@@ -365,3 +365,21 @@ def test_model_fit_at_the_image_border(marker_type):
     res = refine_model(crop, c[0] + 0.3, c[1] - 0.2, r, window_px=w + 1.5, shape_hint=J)
     assert res.ok, res.reason
     assert np.hypot(res.x - c[0], res.y - c[1]) < 0.01
+
+
+@pytest.mark.parametrize("level", [20.0, 95.0, 240.0])
+def test_model_fit_leaves_an_occluder_in_the_window_out(level):
+    # a blob of another grey over one sector, clear of the centre: the pixels unlike their mirror
+    # image through the seed are down-weighted from the first fit on (without that, the fit was
+    # pulled more than a pixel and refused)
+    img, c, r, poly = render((90.4, 89.7), 30.0, angle=0.4, blur=0.7, shape=(180, 180), outline=True, noise=3.0,
+                             rng=np.random.default_rng(1))
+    t = np.linspace(0, 2 * np.pi, 9)[:-1]
+    blob = c + 0.45 * r * np.array([np.cos(2.0), np.sin(2.0)]) \
+        + 9.0 * (1 + 0.3 * np.sin(3 * t))[:, None] * np.stack([np.cos(t), np.sin(t)], 1)
+    cv2.fillPoly(img, [np.round(blob * 16).astype(np.int32)], level, cv2.LINE_AA, 4)
+    a = refine_center(img, c[0] + 0.8, c[1] - 0.6, r)
+    J, w = outline_window(poly, a.x, a.y)
+    res = refine_model(img, a.x, a.y, r, window_px=w + 1.5, shape_hint=J, max_shift_px=1.0)
+    assert res.ok, res.reason
+    assert np.hypot(res.x - c[0], res.y - c[1]) < 0.01
