@@ -170,8 +170,8 @@ class HMASettings:
         ellipse too (``refine_in_outline(..., model=True)``, as the classical detector's
         ``model_fit``), kept where its sigma is the smallest; after the instance decision as well,
         so the same markers are found. On the fresh test-split sets 9000 / 9100 / 9200 / 9300 the
-        shipped network's centre error went from 0.085 / 0.068 / 0.057 / 0.065 px mean to 0.081 /
-        0.059 / 0.053 / 0.062 (p95 0.149 / 0.205 / 0.170 / 0.152 -> 0.139 / 0.194 / 0.167 / 0.164).
+        shipped network's centre error went from 0.085 / 0.068 / 0.057 / 0.065 px mean to 0.077 /
+        0.060 / 0.051 / 0.059 (p95 0.149 / 0.205 / 0.170 / 0.152 -> 0.118 / 0.185 / 0.165 / 0.145).
     One torch thread per detector because cpdetect parallelises over images (``--workers``): torch's
     multi-threaded kernels on an oversubscribed CPU ran 20x slower here (13.7 against 0.71 s per
     megapixel with one other busy process on 2 cores). OpenCV's threads share a busy CPU gracefully
