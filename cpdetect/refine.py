@@ -33,13 +33,13 @@ Methods (``method=``):
     derivatives, first with Tukey weights on the difference between each pixel and its mirror
     image through the seed, then on the first fit's residuals (an occluder in the window). The
     model's error near the centre under unequal blur along non-orthogonal lines is point symmetric
-    about p, so it does not move p. Unlike the symmetry fit, which compares the image with itself turned 180 degrees
-    (each noise sample counted twice) on a smoothed copy, it uses every raw pixel once: on the
-    noisy tilted markers of tests/test_refine.py 0.024 px mean error against the symmetry fit's
-    0.030 on the same outline window, and in the classical detector (``model_fit``) 0.034 / 0.036
-    against 0.044 / 0.047 px on two train-split dev sets. It needs a seed within about a pixel:
-    ``refine_center(method="model")`` runs ``"auto"`` first and keeps whichever of the two has the
-    smaller sigma.
+    about p, so it does not move p. Unlike the symmetry fit, which compares the image with itself
+    turned 180 degrees (each noise sample counted twice) on a smoothed copy, it uses every raw
+    pixel once: on the noisy tilted markers of tests/test_refine.py 0.024 px mean error against the
+    symmetry fit's 0.030 on the same outline window, and in the classical detector (``model_fit``)
+    0.034 / 0.036 against 0.044 / 0.047 px on two train-split dev sets. It needs a seed within about
+    a pixel: ``refine_center(method="model")`` runs ``"auto"`` first and keeps whichever of the two
+    has the smaller sigma.
 ``"auto"`` (default)
     ``"symmetry"`` seeded by ``"saddle"`` on the full window and, when that fit's sigma is over
     0.05 px, on 0.7, 0.5 and 0.35 of it seeded at the caller's point; the fit with the smallest sigma
@@ -543,7 +543,7 @@ def refine_model(gray: np.ndarray, x0: float, y0: float, radius_px: float, windo
     p = least_squares(full.residuals, p, jac=full.jacobian, method="lm", max_nfev=60).x
     if not np.all(np.isfinite(p)):
         return _fail(x0, y0, "model", "fit diverged")
-    # the second, from there, those far from the first fit
+    # the second, from there, those far from the first fit (its residuals taken unweighted)
     full.weights = np.ones(X.size)
     full.weights = _tukey_sqrt(full.residuals(p))
     p = least_squares(full.residuals, p, jac=full.jacobian, method="lm", max_nfev=60).x
