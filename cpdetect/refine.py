@@ -231,15 +231,17 @@ def _symmetry_offsets(w: float, shape_hint: np.ndarray | None) -> np.ndarray:
     d = np.stack([gx.ravel(), gy.ravel()], axis=1).astype(np.float64)
     half = (d[:, 1] > 0) | ((d[:, 1] == 0) & (d[:, 0] > 0))
     d = d[half]
-    if shape_hint is not None:
-        J = np.asarray(shape_hint, float).reshape(2, 2)
-        # normalise the hint so that its larger axis maps to w pixels
-        s = np.linalg.svd(J, compute_uv=False)
-        u = np.linalg.solve(J / s[0] * w, d.T).T
-        inside = np.einsum("ij,ij->i", u, u) <= 1.0
-    else:
-        inside = np.einsum("ij,ij->i", d, d) <= w * w
-    return d[inside]
+    return d[_in_window(d.T, w, shape_hint)]
+
+
+def _in_window(d: np.ndarray, w: float, shape_hint: np.ndarray | None) -> np.ndarray:
+    """Which offsets d (2, n) lie in the fitting window: the disc of radius w, or the hint's ellipse
+    with its larger axis normalised to w pixels."""
+    if shape_hint is None:
+        return np.einsum("ij,ij->j", d, d) <= w * w
+    J = np.asarray(shape_hint, float).reshape(2, 2)
+    u = np.linalg.solve(J / np.linalg.svd(J, compute_uv=False)[0] * w, d)
+    return np.einsum("ij,ij->j", u, u) <= 1.0
 
 
 def _symmetry_smoothing(window_px: float) -> float:
@@ -380,13 +382,7 @@ def _window_pixels(shape: tuple[int, int], x0: float, y0: float, w: float,
     ix, iy = int(round(x0)), int(round(y0))
     X, Y = np.meshgrid(np.arange(ix - n, ix + n + 1), np.arange(iy - n, iy + n + 1))
     X, Y = X.ravel(), Y.ravel()
-    d = np.stack([X - x0, Y - y0])
-    if shape_hint is not None:
-        J = np.asarray(shape_hint, float).reshape(2, 2)
-        u = np.linalg.solve(J / np.linalg.svd(J, compute_uv=False)[0] * w, d)
-        inside = np.einsum("ij,ij->j", u, u) <= 1.0
-    else:
-        inside = np.einsum("ij,ij->j", d, d) <= w * w
+    inside = _in_window(np.stack([X - x0, Y - y0]), w, shape_hint)
     inside &= (X >= 0) & (Y >= 0) & (X < shape[1]) & (Y < shape[0])
     return X[inside], Y[inside]
 
@@ -880,8 +876,8 @@ def refine_center_painted(gray: np.ndarray, paint, x0: float, y0: float, radius_
     if paint is None or (res.ok and res.sigma_px <= retry_sigma_px):
         return res
     img = paint() if callable(paint) else paint
-    alt = refine_center_coarse_to_fine(img, x0, y0, radius_px, method=method, max_shift_px=max_shift_px)
-    return alt if alt.ok and (not res.ok or alt.sigma_px < res.sigma_px) else res
+    return _smaller_sigma(res, refine_center_coarse_to_fine(img, x0, y0, radius_px, method=method,
+                                                            max_shift_px=max_shift_px))
 
 
 __all__ = ["RefineResult", "outline_window", "refine_center", "refine_center_coarse_to_fine", "refine_center_painted",

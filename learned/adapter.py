@@ -91,8 +91,8 @@ class HMASettings:
     (pixels) for bounded memory. min_radius_px: smallest instance kept (equal-area radius, image
     pixels). refine: centre refinement method of cpdetect.refine ("auto", "symmetry", "saddle",
     "hough", "model") or "none". drop_unrefined: drop instances where refinement finds no X-corner
-    (blobs of texture are not markers). max_sigma_px: drop instances whose refined centre is less certain than
-    this (image pixels): on the validation set (train-split backgrounds) 0.3 took false markers from
+    (blobs of texture are not markers). max_sigma_px: drop instances whose refined centre is less
+    certain than this (image pixels): on the validation set (train-split backgrounds) 0.3 took false markers from
     17 to 4 for 5 of 89 true ones, most of them mislocated onto another corner. max_sigma_verified_px:
     the same bound for a centre where the classical marker model fits (an occluder's edge in the
     refinement window inflates sigma; the model guards against a wrong corner): 0.6 found one more
