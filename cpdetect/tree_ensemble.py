@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -48,17 +49,33 @@ class TreeEnsemble:
         X = x.reshape(1, -1) if one else x
         if X.shape[1] != len(self.features):
             raise ValueError(f"expected {len(self.features)} features, got {X.shape[1]}")
-        n_trees = self.feature.shape[0]
-        trees = np.arange(n_trees)[None, :]
+        feature, threshold, missing_left, left, right = self._flat
+        n_trees, n_nodes = self.feature.shape
+        # flat node indices (tree * n_nodes + node) into arrays where a leaf points to itself, so
+        # every sample walks ``depth`` steps without asking whether it has arrived
+        node = np.broadcast_to(np.arange(n_trees) * n_nodes, (len(X), n_trees)).copy()
         rows = np.arange(len(X))[:, None]
-        node = np.zeros((len(X), n_trees), np.intp)
+        nan = bool(np.isnan(X).any())
         for _ in range(self.depth):
-            v = X[rows, self.feature[trees, node]]
-            go_left = np.where(np.isnan(v), self.missing_left[trees, node], v <= self.threshold[trees, node])
-            node = np.where(self.leaf[trees, node], node,
-                            np.where(go_left, self.left[trees, node], self.right[trees, node]))
-        out = self.baseline + self.value[trees, node].sum(1)
+            v = X[rows, feature[node]]
+            go_left = v <= threshold[node]
+            if nan:
+                go_left = np.where(np.isnan(v), missing_left[node], go_left)
+            node = np.where(go_left, left[node], right[node])
+        out = self.baseline + self.value.ravel()[node].sum(1)
         return out[0] if one else out
+
+    @cached_property
+    def _flat(self) -> tuple[np.ndarray, ...]:
+        """feature, threshold, missing_left, left, right raveled, children as flat indices, a leaf's
+        children itself."""
+        n_trees, n_nodes = self.feature.shape
+        base = (np.arange(n_trees) * n_nodes)[:, None]
+        own = base + np.arange(n_nodes)[None, :]
+        left = np.where(self.leaf, own, base + self.left)
+        right = np.where(self.leaf, own, base + self.right)
+        return (self.feature.ravel(), self.threshold.ravel(), self.missing_left.ravel(), left.ravel(),
+                right.ravel())
 
     def probability(self, x: np.ndarray) -> np.ndarray | float:
         """P(positive class) in [0, 1] for ``x`` as in :meth:`log_odds`."""

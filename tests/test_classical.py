@@ -491,6 +491,34 @@ def test_opposite_mismatch_allows_a_shadow_over_two_adjacent_sectors():
     assert m[4] > 0.35
 
 
+def test_opposite_mismatch_of_one_marker_equals_the_vectorised_rule():
+    from cpdetect.classical import opposite_mismatch
+
+    rng = np.random.default_rng(5)
+    lv = rng.uniform(0.0, 255.0, (400, 4))
+    lv[::3, :2] *= rng.uniform(0.2, 1.0, (134, 1))  # shadows over two adjacent sectors
+    many = opposite_mismatch(lv)
+    one = np.array([opposite_mismatch(v)[0] for v in lv])
+    np.testing.assert_allclose(one, many, rtol=1e-12, atol=0)
+    assert (many < 0.1).sum() >= 20  # the shadow hypotheses were exercised
+
+
+def test_line_fit_equals_the_total_least_squares_line():
+    from cpdetect.classical import _line_fit
+
+    rng = np.random.default_rng(9)
+    for n, sd in [(2, 0.0), (5, 0.3), (40, 0.05), (40, 3.0), (300, 1.0)]:
+        t, ang = rng.uniform(-30, 30, n), rng.uniform(0, np.pi)
+        pts = np.column_stack([t * np.cos(ang), t * np.sin(ang)]) + rng.normal(0, sd, (n, 2)) + rng.uniform(-500, 500, 2)
+        line, rms = _line_fit(pts)
+        m = pts.mean(0)
+        _, s, vt = np.linalg.svd(pts - m)
+        normal = vt[-1] * np.sign(vt[-1] @ line[:2])
+        assert abs(np.hypot(*line[:2]) - 1.0) < 1e-12
+        np.testing.assert_allclose(line, [*normal, -normal @ m], atol=1e-9)
+        assert rms == pytest.approx(s[-1] / np.sqrt(n), abs=1e-6)
+
+
 @pytest.mark.parametrize("marker_type", ["square", "circle"])
 def test_marker_half_in_shadow_is_found(det, marker_type):
     center, angle = (131.4, 122.7), 0.3
