@@ -304,9 +304,9 @@ def _median(a: np.ndarray) -> float:
     """np.median of all of ``a`` (no NaN), by np.partition: a quarter of np.median's time on the
     small arrays of the verification."""
     a = np.ravel(a)
-    h = a.size // 2
     if a.size == 0:
         return math.nan
+    h = a.size // 2
     if a.size % 2:
         return float(np.partition(a, h)[h])
     p = np.partition(a, (h - 1, h))

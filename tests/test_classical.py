@@ -503,6 +503,17 @@ def test_opposite_mismatch_of_one_marker_equals_the_vectorised_rule():
     assert (many < 0.1).sum() >= 20  # the shadow hypotheses were exercised
 
 
+def test_median_equals_numpy_median():
+    from cpdetect.classical import _median
+
+    rng = np.random.default_rng(4)
+    for n in (1, 2, 3, 10, 71, 144):
+        a = rng.normal(size=n) * 50
+        assert _median(a) == pytest.approx(float(np.median(a)), abs=1e-12)
+        assert _median(a.reshape(1, -1)) == pytest.approx(float(np.median(a)), abs=1e-12)
+    assert np.isnan(_median(np.zeros(0)))
+
+
 def test_line_fit_equals_the_total_least_squares_line():
     from cpdetect.classical import _line_fit
 
