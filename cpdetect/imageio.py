@@ -1,6 +1,10 @@
 """Reading photographs safely: every failure is a one-line :class:`InputError` naming the file.
 
 Images come back as uint8 (8-bit gray or BGR). 16-bit images are scaled to 8 bits, alpha is dropped.
+Pixels come back as stored in the file: an EXIF orientation tag is *not* applied (OpenCV applies it
+to JPEGs by default, and not to other formats). COLMAP, OpenSfM / OpenDroneMap and Metashape measure
+image points in the stored frame too, and the sizes that :func:`probe_image` reads from the header
+are that frame's, so a portrait photograph's detections, its size and its camera model agree.
 ``reduce`` (1, 2, 4 or 8) decodes JPEGs at reduced size through libjpeg's DCT scaling
 (``cv2.IMREAD_REDUCED_*``), which is several times faster than decoding in full and resizing.
 """
@@ -237,7 +241,8 @@ def _checked_bytes(p: Path) -> tuple[np.ndarray, str]:
 def _decode_jpeg(data: np.ndarray, p: Path, gray: bool, reduce: int) -> np.ndarray:
     import cv2
 
-    img = cv2.imdecode(data, getattr(cv2, (_REDUCED_GRAY if gray else _REDUCED_COLOR)[reduce]))
+    flags = getattr(cv2, (_REDUCED_GRAY if gray else _REDUCED_COLOR)[reduce]) | cv2.IMREAD_IGNORE_ORIENTATION
+    img = cv2.imdecode(data, flags)
     if img is None:
         raise InputError("corrupt JPEG (cannot decode)", p)
     return img

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 
@@ -675,3 +676,19 @@ def test_marker_on_a_background_dark_beside_one_sector_and_bright_beside_the_nex
     assert np.hypot(near[0].x - center[0], near[0].y - center[1]) < 0.1
     # not held against it as inverted surroundings (counted over all rays: 0.39, score 0.88 for the circle)
     assert near[0].score > 0.97
+
+
+def test_a_portrait_photo_is_measured_in_its_stored_frame(tmp_path, det):
+    # an EXIF orientation tag (a camera held upright) must not rotate the detections away from the
+    # stored frame, which the header's size, detections.json and the SfM camera models all use
+    from test_imageio import with_exif_orientation
+
+    img = marker_image((150.3, 90.6), 22.0, 0.4, "circle", (200, 300), seed=2)
+    plain = tmp_path / "plain.jpg"
+    cv2.imwrite(str(plain), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    tagged = tmp_path / "portrait.jpg"
+    tagged.write_bytes(with_exif_orientation(plain.read_bytes(), 6))
+    a, b = det.detect(str(plain)), det.detect(str(tagged))
+    assert b.image_size == (300, 200) and len(a.detections) == len(b.detections) == 1
+    assert math.hypot(b.detections[0].x - 150.3, b.detections[0].y - 90.6) < 0.3
+    assert (b.detections[0].x, b.detections[0].y) == (a.detections[0].x, a.detections[0].y)

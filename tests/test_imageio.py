@@ -30,6 +30,33 @@ def test_reduced_decode_halves_the_size(jpeg):
     assert read_image(jpeg, gray=True, reduce=8).shape == (8, 10)
 
 
+def with_exif_orientation(jpeg_bytes: bytes, orientation: int) -> bytes:
+    """The JPEG with an EXIF APP1 segment holding only the orientation tag (0x0112) inserted after SOI."""
+    ifd = ((1).to_bytes(2, "little") + (0x0112).to_bytes(2, "little") + (3).to_bytes(2, "little")
+           + (1).to_bytes(4, "little") + orientation.to_bytes(2, "little") + bytes(2) + bytes(4))
+    body = b"Exif\x00\x00" + b"II*\x00" + (8).to_bytes(4, "little") + ifd
+    return jpeg_bytes[:2] + b"\xff\xe1" + (len(body) + 2).to_bytes(2, "big") + body + jpeg_bytes[2:]
+
+
+@pytest.mark.parametrize("orientation", [3, 6, 8])
+def test_exif_orientation_is_not_applied(tmp_path, jpeg, orientation):
+    # pixels as stored, the frame of the header's size and of COLMAP, OpenSfM and Metashape
+    tagged = tmp_path / "tagged.jpg"
+    tagged.write_bytes(with_exif_orientation(jpeg.read_bytes(), orientation))
+    # OpenCV on its own would rotate this one (the test would show nothing if it did not)
+    rotated = cv2.imread(str(tagged), cv2.IMREAD_GRAYSCALE)
+    assert rotated.shape == ((80, 60) if orientation in (6, 8) else (60, 80))
+    assert not np.array_equal(rotated, cv2.imread(str(jpeg), cv2.IMREAD_GRAYSCALE))
+    info = probe_image(tagged)
+    for gray in (True, False):
+        np.testing.assert_array_equal(read_image(tagged, gray=gray), read_image(jpeg, gray=gray))
+    assert read_image(tagged, gray=True).shape == (info.height, info.width)
+    np.testing.assert_array_equal(read_image(tagged, reduce=2), read_image(jpeg, reduce=2))
+    small, full = read_reduced_colour_then_gray(tagged, 2)
+    np.testing.assert_array_equal(small, read_image(jpeg, reduce=2))
+    np.testing.assert_array_equal(full.result(), read_image(jpeg, gray=True))
+
+
 @pytest.mark.parametrize("case, message", [
     ("zero", "empty"), ("truncated", "truncated"), ("text", "not an image"), ("missing", "not found"),
 ])
