@@ -2,9 +2,10 @@
 
 Images come back as uint8 (8-bit gray or BGR). 16-bit images are scaled to 8 bits, alpha is dropped.
 Pixels come back as stored in the file: an EXIF orientation tag is *not* applied (OpenCV applies it
-to JPEGs by default, and not to other formats). COLMAP, OpenSfM / OpenDroneMap and Metashape measure
-image points in the stored frame too, and the sizes that :func:`probe_image` reads from the header
-are that frame's, so a portrait photograph's detections, its size and its camera model agree.
+to JPEGs by default, and not to other formats). COLMAP and OpenSfM / OpenDroneMap measure image
+points in the stored frame too; Metashape keeps the tag beside its sensor's stored size. The sizes
+that :func:`probe_image` reads from the header are that frame's as well, so a portrait photograph's
+detections, its size and its camera model agree.
 ``reduce`` (1, 2, 4 or 8) decodes JPEGs at reduced size through libjpeg's DCT scaling
 (``cv2.IMREAD_REDUCED_*``), which is several times faster than decoding in full and resizing.
 """
