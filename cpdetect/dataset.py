@@ -208,8 +208,12 @@ def read_mask(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> 
     if m.ndim != 2 or m.dtype != np.uint8:
         raise InputError(f"mask must be single-channel uint8, got shape {m.shape} {m.dtype}", p)
     if shape is not None and tuple(m.shape) != tuple(shape):
+        # images are read as stored, an EXIF orientation not applied (see cpdetect.imageio); a mask
+        # drawn on the upright view of a portrait photograph is the transposed size
+        hint = ("; drawn on the photo turned upright by its EXIF orientation? masks follow the image as "
+                "stored" if tuple(m.shape) == tuple(shape)[::-1] else "")
         raise InputError(f"mask size {m.shape[1]}x{m.shape[0]} differs from the image's "
-                         f"{shape[1]}x{shape[0]}", p)
+                         f"{shape[1]}x{shape[0]}{hint}", p)
     return m >= 128
 
 

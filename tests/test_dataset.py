@@ -109,8 +109,11 @@ def test_read_mask_errors(tmp_path):
     with pytest.raises(InputError, match="single-channel"):
         read_mask(tmp_path / "c.png")
     cv2.imwrite(str(tmp_path / "g.png"), np.zeros((4, 5), np.uint8))
-    with pytest.raises(InputError, match="differs"):
+    with pytest.raises(InputError, match="differs.*EXIF orientation"):  # transposed: a portrait photo
         read_mask(tmp_path / "g.png", shape=(5, 4))
+    with pytest.raises(InputError, match=r"differs from the image's 7x6$") as e:
+        read_mask(tmp_path / "g.png", shape=(6, 7))
+    assert "EXIF" not in str(e.value)
 
 
 def _cli_error(capsys, argv) -> tuple[int, str]:
