@@ -1211,6 +1211,28 @@ def run_georef(inputs: GeorefInputs, settings: GeorefSettings = GeorefSettings()
         raise
 
 
+def _check_image_sizes(scene, per_image: dict, source: Path) -> None:
+    """Detections are pixel positions in the camera model of their image, so every image detected
+    must have its camera's size; a one-line :class:`InputError` naming ``source`` (the detections
+    file or the image folder) and the first image that differs, with the likely cause, otherwise."""
+    for name, rec in per_image.items():
+        w, h = int(rec.get("width") or 0), int(rec.get("height") or 0)
+        if not (w and h):  # an image without a record
+            continue
+        cam = scene.cameras[scene.images[name].camera_id]
+        if (w, h) == (cam.width, cam.height):
+            continue
+        if (w, h) == (cam.height, cam.width):
+            why = ("turned by 90 degrees: cpdetect reads images as stored, with no EXIF orientation applied; "
+                   "were these images rotated after the reconstruction, or detected by another tool?")
+        elif abs(w * cam.height - h * cam.width) <= max(w, h, cam.width, cam.height):
+            why = "a scaled copy? detect on the images the reconstruction was made from"
+        else:
+            why = "not the image the reconstruction was made from?"
+        raise InputError(f"image {name!r} is {w}x{h} but its camera in the reconstruction is "
+                         f"{cam.width}x{cam.height} ({why})", source)
+
+
 def _apply_rejects(per_image: dict, rejects: list[dict], path: Path) -> tuple[dict, dict]:
     """Drop the detections a reviewer rejected (:func:`cpdetect.rejects.apply_rejects`); returns the
     filtered records and the report's ``rejects`` summary."""
@@ -1252,6 +1274,7 @@ def _run_georef(inputs, settings, progress, workers, scheduler, on_detections) -
                     [(n, _file_key(p)) for n, p in image_paths.items()]])  # refine reads the images
     else:
         per_image, k1 = stage_detect(store, scene, image_paths, settings, progress, workers, scheduler)
+    _check_image_sizes(scene, per_image, Path(inputs.detections if inputs.detections is not None else inputs.images))
     k1 = _hash([k1, recon_key])
     rejects_summary = None
     if rejects is not None:

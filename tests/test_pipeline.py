@@ -193,6 +193,25 @@ def test_cloud_mode_colorizes_the_dense_cloud_with_probability_maps(site, monkey
         assert min(d, key=d.get) == m["surveyed_name"]
 
 
+@pytest.mark.parametrize("size, cause", [((512, 768), "turned by 90 degrees"), ((1536, 1024), "scaled copy"),
+                                         ((700, 512), "not the image")])
+def test_detections_of_another_image_size_are_refused(site, tmp_path, capsys, size, cause):
+    # detections measured on rotated or resized copies cannot be pixels of the reconstruction's cameras
+    root, truth = site
+    s = root / "site"
+    doc = json.loads((root / "dets.json").read_text())
+    doc["images"][3]["width"], doc["images"][3]["height"] = size
+    dets = tmp_path / "dets.json"
+    dets.write_text(json.dumps(doc))
+    rc = main(["-q", "georef", "--reconstruction", str(s / "sparse"), "--images", str(s / "images"),
+               "--gcps", str(s / "gcps.csv"), "--crs", "EPSG:25832", "--mesh", str(s / "mesh.ply"),
+               "--detections", str(dets), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and str(dets) in err[0]
+    assert f"is {size[0]}x{size[1]} but its camera in the reconstruction is 768x512" in err[0] and cause in err[0]
+    assert not (tmp_path / "o").exists()
+
+
 def test_no_detections_gives_a_failed_report_not_a_crash(site, tmp_path):
     root, truth = site
     s = root / "site"
