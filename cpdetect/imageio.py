@@ -340,5 +340,29 @@ def list_images(path: str | os.PathLike) -> list[Path]:
         return [p]
     files = sorted(f for f in p.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES)
     if not files:
-        raise InputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder", p)
+        raise InputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder{_what_is_there(p)}", p)
     return files
+
+
+# photographs that OpenCV cannot decode, by suffix: what to tell their owner
+_UNREADABLE = {".heic": "HEIC", ".heif": "HEIF", ".dng": "raw", ".cr2": "raw", ".cr3": "raw", ".nef": "raw",
+               ".arw": "raw", ".orf": "raw", ".rw2": "raw", ".raf": "raw", ".webp": "WebP"}
+
+
+def _what_is_there(folder: Path) -> str:
+    """For the error of a folder without images: the photographs it holds in formats cpdetect cannot
+    read, or the images in its subfolders (only the folder itself is listed), as "; ..." or ""."""
+    kinds: dict[str, int] = {}
+    for f in folder.iterdir():
+        kind = _UNREADABLE.get(f.suffix.lower())
+        if kind and f.is_file():
+            kinds[kind] = kinds.get(kind, 0) + 1
+    if kinds:
+        found = ", ".join(f"{n} {k}" for k, n in sorted(kinds.items(), key=lambda kv: -kv[1]))
+        return f"; it holds {found} photographs, which cpdetect cannot read: convert them to JPEG or TIFF"
+    below = [d for d in sorted(folder.iterdir()) if d.is_dir()
+             and any(f.suffix.lower() in IMAGE_SUFFIXES for f in d.rglob("*") if f.is_file())]
+    if below:
+        names = ", ".join(d.name for d in below[:3]) + (", ..." if len(below) > 3 else "")
+        return f"; subfolders hold images ({names}): give each subfolder, only a folder's own files are read"
+    return ""

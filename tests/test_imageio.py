@@ -165,3 +165,23 @@ def test_list_images(tmp_path, jpeg):
         list_images(empty)
     with pytest.raises(InputError, match="not found"):
         list_images(tmp_path / "absent")
+
+
+def test_a_folder_without_images_says_what_it_holds(tmp_path, jpeg):
+    phone = tmp_path / "phone"
+    phone.mkdir()
+    for k in range(3):
+        (phone / f"IMG_{k}.HEIC").write_bytes(b"x")
+    (phone / "IMG_9.dng").write_bytes(b"x")
+    with pytest.raises(InputError, match="3 HEIC, 1 raw photographs, which cpdetect cannot read"):
+        list_images(phone)
+    flight = tmp_path / "flight"
+    (flight / "a" / "b").mkdir(parents=True)
+    (flight / "a" / "b" / "DJI_0001.JPG").write_bytes(jpeg.read_bytes())
+    (flight / "empty").mkdir()
+    with pytest.raises(InputError, match=r"subfolders hold images \(a\): give each subfolder"):
+        list_images(flight)
+    empty = tmp_path / "nothing"
+    empty.mkdir()
+    with pytest.raises(InputError, match=r"in folder$"):
+        list_images(empty)
