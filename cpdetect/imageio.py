@@ -17,6 +17,7 @@ import tempfile
 import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
+from itertools import islice
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -360,8 +361,9 @@ def _what_is_there(folder: Path) -> str:
     if kinds:
         found = ", ".join(f"{n} {k}" for k, n in sorted(kinds.items(), key=lambda kv: -kv[1]))
         return f"; it holds {found} photographs, which cpdetect cannot read: convert them to JPEG or TIFF"
+    # a bounded look (the first 2,000 entries under each subfolder): this is only an error message
     below = [d for d in sorted(folder.iterdir()) if d.is_dir()
-             and any(f.suffix.lower() in IMAGE_SUFFIXES for f in d.rglob("*") if f.is_file())]
+             and any(f.suffix.lower() in IMAGE_SUFFIXES for f in islice(d.rglob("*"), 2000))]
     if below:
         names = ", ".join(d.name for d in below[:3]) + (", ..." if len(below) > 3 else "")
         return f"; subfolders hold images ({names}): give each subfolder, only a folder's own files are read"
