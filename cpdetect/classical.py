@@ -1034,7 +1034,7 @@ class _Verifier:
             fits.append(self._with_outline(self._fit_outline(x, y, core, sec, f, inner, pol_dark, r0, blended), x, y,
                                            core, core_r))
             if isinstance(fits[-1], dict) and fits[-1]["near"] and fits[-1]["radius"] <= 1.2 * core_r \
-                    and fits[-1]["e_rel"] < 0.03:
+                    and fits[-1]["e_rel"] < 0.03 and self._size_ok(fits[-1]["radius"]):
                 break  # the pattern's own outline, clearly: the other polarity can only be farther
         else:
             # neither polarity alone: each sector against its own level
@@ -1047,13 +1047,16 @@ class _Verifier:
         good = [t for t in fits if isinstance(t, dict)]
         if not good:
             return fits[0]
+        # an outline of impossible size never wins (one of a polarity whose sectors blend into the
+        # background can close in a few pixels from the centre, inside the four-sector core)
+        good = [t for t in good if self._size_ok(t["radius"])]
+        if not good:
+            return "size out of range"
         # near the core, then fitting well, then the innermost (a white margin's edge fits well too)
         fit = min(good, key=lambda t: (not t["near"], t["e_rel"] > 0.04, t["radius"]))
         hull_fallback = 0.0
         outline, radius = fit["outline"], fit["radius"]
         mtype, e_model, r0, ok, rays = fit["mtype"], fit["e_model"], fit["r0"], fit["ok"], fit["rays"]
-        if radius < 0.8 * self.s.min_radius_px or radius > self.max_radius * 1.1:
-            return "size out of range"
         outer = self.outer_ring(x, y, outline, D, B, C, ~core["dark"][sec], (f > 0.15) & (f < 0.85), sec)
         if isinstance(outer, str):
             return outer
@@ -1074,6 +1077,10 @@ class _Verifier:
             reported = mtype if score < self.type_min_score else _type_of(
                 x, y, core["bounds"], core["widths"], fit["pts_by_sector"], radius, feats, mtype, self.s.type_trees)
         return _Verified(x, y, reported, radius, score, outline, (D, B))
+
+    def _size_ok(self, radius: float) -> bool:
+        """Whether an outline's equal-area radius (pixels) is a marker's, with a margin for the fit."""
+        return 0.8 * self.s.min_radius_px <= radius <= 1.1 * self.max_radius
 
     def _fit_outline(self, x, y, core, sec, f, inner, pol_dark: bool | None, r0: float,
                      blended: int | None = None) -> dict | str:

@@ -692,3 +692,21 @@ def test_a_portrait_photo_is_measured_in_its_stored_frame(tmp_path, det):
     assert b.image_size == (300, 200) and len(a.detections) == len(b.detections) == 1
     assert math.hypot(b.detections[0].x - 150.3, b.detections[0].y - 90.6) < 0.3
     assert (b.detections[0].x, b.detections[0].y) == (a.detections[0].x, a.detections[0].y)
+
+
+def test_an_outline_of_impossible_size_does_not_win():
+    # a train-split generated image (seed 808, image 157): a blurred circle marker whose bright
+    # sectors blend into a grey surround; that polarity's outline closes 3 px from the centre, inside
+    # the four-sector core, and once won over the dark sectors' true outline as the innermost
+    from cpdetect.backgrounds import BackgroundLibrary, list_backgrounds
+    from cpdetect.synth_images import SynthImageOptions, generate_image
+
+    opt = SynthImageOptions(split="train")
+    sample = generate_image(157, 808, opt, BackgroundLibrary(list_backgrounds(opt.split)))
+    ok, buf = cv2.imencode(".jpg", sample.image, [cv2.IMWRITE_JPEG_QUALITY, int(sample.jpeg_quality)])
+    gray = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+    truth = min(sample.markers, key=lambda m: math.hypot(m.x - 212.9, m.y - 135.1))
+    assert math.hypot(truth.x - 212.9, truth.y - 135.1) < 0.5 and truth.extra["blur_px"] > 1.5
+    dets = get_detector("classical").detect(gray).detections
+    near = [d for d in dets if math.hypot(d.x - truth.x, d.y - truth.y) < 2.0]
+    assert len(near) == 1 and abs(near[0].radius_px - truth.radius_px) < 0.15 * truth.radius_px
