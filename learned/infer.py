@@ -64,8 +64,10 @@ class TorchBackend:
 
         if threads:
             torch.set_num_threads(int(threads))
+        from .devices import resolve_device
+
         self.torch = torch
-        self.device = torch.device(device)
+        self.device = resolve_device(device)
         self.model = model.eval().to(self.device)
 
     @classmethod

@@ -127,9 +127,11 @@ def use_channels_last(cfg: TrainConfig, device: torch.device) -> bool:
 
 
 def pick_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
+    """The training device: "auto" (CUDA when present), "cpu", "cuda", "cuda:1"; see
+    :func:`learned.devices.resolve_device` (a device this torch cannot use is a UsageError)."""
+    from .devices import resolve_device
+
+    return resolve_device(name)
 
 
 def read_state(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor], dict | None]:

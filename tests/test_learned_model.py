@@ -587,3 +587,47 @@ def test_cli_train_resume_export_and_detect(tmp_path, capsys):
     (tmp_path / "afile").write_text("x")
     assert main(["train", "--data", str(data), "--out", str(tmp_path / "afile")]) == 2
     assert "must be a folder" in capsys.readouterr().err
+
+
+def test_a_device_torch_cannot_use_is_a_usage_error(monkeypatch):
+    import torch
+
+    from cpdetect.errors import UsageError
+    from learned.devices import resolve_device
+
+    assert resolve_device("cpu") == torch.device("cpu")
+    with pytest.raises(UsageError, match="unknown device 'cuda:x'"):
+        resolve_device("cuda:x")
+    # no GPU: a CPU-only build and a CUDA build that sees none say which
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert resolve_device("auto") == torch.device("cpu")
+    monkeypatch.setattr(torch.version, "cuda", None)
+    with pytest.raises(UsageError, match="'cuda': this torch is built without CUDA"):
+        resolve_device("cuda")
+    monkeypatch.setattr(torch.version, "cuda", "13.0")
+    with pytest.raises(UsageError, match="'cuda:0': no CUDA GPU is visible"):
+        resolve_device("cuda:0")
+    # one GPU: cuda and cuda:0 resolve, cuda:1 does not
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    assert resolve_device("auto") == torch.device("cuda")
+    assert resolve_device("cuda:0") == torch.device("cuda", 0)
+    with pytest.raises(UsageError, match="'cuda:1': this machine has 1 CUDA GPU"):
+        resolve_device("cuda:1")
+
+
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="needs a machine without CUDA")
+def test_train_on_a_missing_gpu_stops_with_one_line_and_writes_nothing(tmp_path):
+    import subprocess
+    import sys
+
+    cli = [sys.executable, "-m", "cpdetect.cli"]
+    data, out = tmp_path / "data", tmp_path / "model"
+    subprocess.run([*cli, "synth", "images", "--out", str(data), "--n", "2", "--seed", "3"], check=True,
+                   capture_output=True, timeout=120)
+    r = subprocess.run([*cli, "train", "--data", str(data), "--out", str(out), "--device", "cuda",
+                        "--epochs", "1", "--iters-per-epoch", "1", "--batch", "2", "--crop", "64"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert len(r.stderr.splitlines()) == 1 and "device 'cuda'" in r.stderr and "Traceback" not in r.stderr
+    assert not out.exists()
