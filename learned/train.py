@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from .data import AugmentConfig, CropDataset, Sample, samples_from_dataset, split_samples
+from .devices import resolve_device
 from .hma import HMAModel, build_model, load_matching, marker_probability, preset, read_config, save_model
 from .rmi import HMALossWeights, RMIStats, hma_loss
 
@@ -124,14 +125,6 @@ def use_channels_last(cfg: TrainConfig, device: torch.device) -> bool:
     CPU's and the 15 steps agreed within 2e-3. The likely reason the GPU fine-tuning of stop 27 lost.
     """
     return bool(cfg.channels_last) and device.type == "cpu"
-
-
-def pick_device(name: str) -> torch.device:
-    """The training device: "auto" (CUDA when present), "cpu", "cuda", "cuda:1"; see
-    :func:`learned.devices.resolve_device` (a device this torch cannot use is a UsageError)."""
-    from .devices import resolve_device
-
-    return resolve_device(name)
 
 
 def read_state(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor], dict | None]:
@@ -310,7 +303,7 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
 
     t_start = time.time()
     torch.set_num_threads(max(1, int(cfg.threads)))
-    device = pick_device(cfg.device)
+    device = resolve_device(cfg.device)  # a device this torch cannot use is a UsageError
     out = Path(cfg.out)
     if out.exists() and not out.is_dir():
         raise UsageError(f"{out}: --out must be a folder, this is a file")
@@ -484,5 +477,4 @@ class _StopRequest:
                 signal.signal(sig, handler)
 
 
-__all__ = ["TrainConfig", "TrainResult", "train", "evaluate", "init_from", "read_state", "pick_device",
-           "use_channels_last"]
+__all__ = ["TrainConfig", "TrainResult", "train", "evaluate", "init_from", "read_state", "use_channels_last"]
