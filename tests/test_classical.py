@@ -710,3 +710,33 @@ def test_an_outline_of_impossible_size_does_not_win():
     dets = get_detector("classical").detect(gray).detections
     near = [d for d in dets if math.hypot(d.x - truth.x, d.y - truth.y) < 2.0]
     assert len(near) == 1 and abs(near[0].radius_px - truth.radius_px) < 0.15 * truth.radius_px
+
+
+def test_type_is_read_from_the_polarity_whose_boundary_fits_better(monkeypatch):
+    # image 71 of the train-split set of seed 808: a square marker on a background of about its
+    # bright level, shaded inside one bright cell. The bright cells' rays end early on the shading,
+    # an outline that still fits (e_rel 0.028) and, as the innermost, is kept; read from it, the
+    # type was "circle". The dark cells' boundary fits ten times better (0.003) and says "square".
+    import cpdetect.classical as C
+    from cpdetect.backgrounds import BackgroundLibrary, list_backgrounds
+    from cpdetect.synth_images import SynthImageOptions, _encode, generate_image
+
+    opt = SynthImageOptions(split="train")
+    sample = generate_image(71, 808, opt, BackgroundLibrary(list_backgrounds("train")))
+    img = cv2.imdecode(np.frombuffer(_encode(sample.image, "jpg", sample.jpeg_quality), np.uint8),
+                       cv2.IMREAD_COLOR)
+    truth = [m for m in sample.markers if m.type == "square"]
+    assert len(truth) == 1
+    t = truth[0]
+
+    def found(ratio):
+        monkeypatch.setattr(C, "TYPE_FIT_RATIO", ratio)
+        res = C.ClassicalDetector().detect(img)
+        return [m for m in res.detections if math.hypot(m.x - t.x, m.y - t.y) < 1.0]
+
+    near = found(C.TYPE_FIT_RATIO)
+    assert len(near) == 1 and near[0].type == "square"
+    # the outline kept, and so the radius and the score, are those of the innermost fit as before
+    before = found(0.0)
+    assert len(before) == 1 and before[0].type == "circle"
+    assert near[0].radius_px == before[0].radius_px and near[0].score == before[0].score
