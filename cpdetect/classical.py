@@ -1086,12 +1086,15 @@ class _Verifier:
         if fit.get("line_frame") and score < LINE_FRAME_MIN_SCORE:
             return "outline degenerate"
         # the outline model keeps the rule of _fit_outline (the score was fitted on its outlines); the
-        # type reported comes from the checker-line frame, which holds under tilt and uses every point
-        reported = fit.get("type")
-        if reported is None:
-            # a candidate the score drops is never reported: the outline model's type will do
-            reported = mtype if score < self.type_min_score else _type_of(
-                x, y, core["bounds"], core["widths"], type_fit["pts_by_sector"], radius, feats, mtype, self.s.type_trees)
+        # type reported comes from the checker-line frame, which holds under tilt and uses every point:
+        # by the type trees, also where the outline itself came from that frame (its type there, the
+        # smallest residual, was kept before: train-split dev808 / dev909 / dev1111 / dev1212, markers
+        # typed wrong 12 / 8 / 18 / 6 -> 11 / 7 / 15 / 5, although the trees were fitted on the other
+        # outlines only); a candidate the score drops is never reported: the outline's type will do
+        frame_type = fit.get("type") or mtype
+        reported = frame_type if score < self.type_min_score else _type_of(
+            x, y, core["bounds"], core["widths"], type_fit["pts_by_sector"], radius, feats, frame_type,
+            self.s.type_trees)
         return _Verified(x, y, reported, radius, score, outline, (D, B))
 
     def _size_ok(self, radius: float) -> bool:

@@ -741,3 +741,20 @@ def test_type_is_read_from_the_polarity_whose_boundary_fits_better(monkeypatch):
     before = found(0.0)
     assert len(before) == 1
     assert near[0].radius_px == before[0].radius_px and near[0].score == before[0].score
+
+
+def test_outline_from_the_checker_lines_is_typed_by_the_trees():
+    # image 351 of the train-split set of seed 1111: a frontal diagonal marker, radius 16 px, whose
+    # outline model fails, so its outline comes from the extents along its checker lines. That
+    # frame's smallest residual called it a circle; the type trees, now asked there too, do not.
+    from cpdetect.backgrounds import BackgroundLibrary, list_backgrounds
+    from cpdetect.synth_images import SynthImageOptions, _encode, generate_image
+
+    sample = generate_image(351, 1111, SynthImageOptions(split="train"), BackgroundLibrary(list_backgrounds("train")))
+    img = cv2.imdecode(np.frombuffer(_encode(sample.image, "jpg", sample.jpeg_quality), np.uint8),
+                       cv2.IMREAD_COLOR)
+    t = sample.markers[0]  # the one of its two diagonal markers at radius 16
+    assert t.type == "diagonal" and 15.0 < t.radius_px < 18.0
+    near = [m for m in get_detector("classical").detect(img).detections if math.hypot(m.x - t.x, m.y - t.y) < 1.0]
+    assert len(near) == 1 and near[0].type == "diagonal"
+    assert abs(near[0].radius_px / t.radius_px - 1.0) < 0.1
