@@ -37,7 +37,9 @@ Pipeline for one image:
    accuracy 0.953 / 0.945 / 0.943 -> 0.979 / 0.979 / 0.984 against the earlier rule). Since
    2026-11-26 gradient-boosted trees (:mod:`cpdetect.marker_type`, ``type_trees``) decide from
    these residuals and other shape features of the same points, which see what blur and occluders
-   do to each shape (train-split: 0.972 -> 0.978 in 5-fold cross-validation on 13,003 candidates).
+   do to each shape (train-split: 0.972 -> 0.978 in 5-fold cross-validation on 13,003 candidates);
+   since 2026-11-27 on every verified marker, outlines from the checker half-lines included, and on
+   the boundary of the polarity that fits its outline clearly better (``TYPE_FIT_RATIO``).
    The outline model, from which the score and **radius_px** (outline area) come, keeps the earlier
    rule: the turn between the two straight parts of each sector's boundary (a square's corner ~90
    degrees, a circle's arc ~35, a diagonal's single side ~0), the models' residuals deciding in between.
