@@ -712,20 +712,26 @@ def test_an_outline_of_impossible_size_does_not_win():
     assert len(near) == 1 and abs(near[0].radius_px - truth.radius_px) < 0.15 * truth.radius_px
 
 
+def generated_photo(index: int, seed: int):
+    """Image ``index`` of the train-split set ``cpdetect synth images --seed SEED`` writes (decoded
+    from the same JPEG bytes) and its true markers."""
+    from cpdetect.backgrounds import BackgroundLibrary, list_backgrounds
+    from cpdetect.synth_images import SynthImageOptions, _encode, generate_image
+
+    sample = generate_image(index, seed, SynthImageOptions(split="train"), BackgroundLibrary(list_backgrounds("train")))
+    jpeg = _encode(sample.image, "jpg", sample.jpeg_quality)
+    return cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR), sample.markers
+
+
 def test_type_is_read_from_the_polarity_whose_boundary_fits_better(monkeypatch):
     # image 71 of the train-split set of seed 808: a square marker on a background of about its
     # bright level, shaded inside one bright cell. The bright cells' rays end early on the shading,
     # an outline that still fits (e_rel 0.028) and, as the innermost, is kept; read from it, the
     # type was "circle". The dark cells' boundary fits ten times better (0.003) and says "square".
     import cpdetect.classical as C
-    from cpdetect.backgrounds import BackgroundLibrary, list_backgrounds
-    from cpdetect.synth_images import SynthImageOptions, _encode, generate_image
 
-    opt = SynthImageOptions(split="train")
-    sample = generate_image(71, 808, opt, BackgroundLibrary(list_backgrounds("train")))
-    img = cv2.imdecode(np.frombuffer(_encode(sample.image, "jpg", sample.jpeg_quality), np.uint8),
-                       cv2.IMREAD_COLOR)
-    truth = [m for m in sample.markers if m.type == "square"]
+    img, markers = generated_photo(71, 808)
+    truth = [m for m in markers if m.type == "square"]
     assert len(truth) == 1
     t = truth[0]
 
@@ -747,13 +753,8 @@ def test_outline_from_the_checker_lines_is_typed_by_the_trees():
     # image 351 of the train-split set of seed 1111: a frontal diagonal marker, radius 16 px, whose
     # outline model fails, so its outline comes from the extents along its checker lines. That
     # frame's smallest residual called it a circle; the type trees, now asked there too, do not.
-    from cpdetect.backgrounds import BackgroundLibrary, list_backgrounds
-    from cpdetect.synth_images import SynthImageOptions, _encode, generate_image
-
-    sample = generate_image(351, 1111, SynthImageOptions(split="train"), BackgroundLibrary(list_backgrounds("train")))
-    img = cv2.imdecode(np.frombuffer(_encode(sample.image, "jpg", sample.jpeg_quality), np.uint8),
-                       cv2.IMREAD_COLOR)
-    t = sample.markers[0]  # the one of its two diagonal markers at radius 16
+    img, markers = generated_photo(351, 1111)
+    t = markers[0]  # the one of its two diagonal markers at radius 16
     assert t.type == "diagonal" and 15.0 < t.radius_px < 18.0
     near = [m for m in get_detector("classical").detect(img).detections if math.hypot(m.x - t.x, m.y - t.y) < 1.0]
     assert len(near) == 1 and near[0].type == "diagonal"
