@@ -759,3 +759,21 @@ def test_outline_from_the_checker_lines_is_typed_by_the_trees():
     near = [m for m in get_detector("classical").detect(img).detections if math.hypot(m.x - t.x, m.y - t.y) < 1.0]
     assert len(near) == 1 and near[0].type == "diagonal"
     assert abs(near[0].radius_px / t.radius_px - 1.0) < 0.1
+
+
+@pytest.mark.parametrize("marker_type", ["circle", "diagonal"])
+def test_marker_without_margin_on_a_wall_of_its_dark_level(det, marker_type):
+    # its dark sectors merge with the wall: the bright ones lie in a dark field all around, as a tag's
+    # bright bit cells do; but bit cells are squares, and quarter discs or triangles are not
+    from cpdetect.markers import frontal_homography
+
+    center, angle, radius, shape = (131.4, 108.7), 0.4, 28.0, (230, 260)
+    spec = MarkerSpec(marker_type, size_m=1.0)
+    img = textured_background(shape, 6, mean=32.0, amp=3.0)
+    render_marker(spec, frontal_homography(center, radius, angle, spec), shape).composite(img, 32.0, 210.0)
+    img = np.clip(img + np.random.default_rng(6).normal(0, 1.5, shape) + 0.5, 0, 255).astype(np.uint8)
+    res = det.detect(img)
+    assert len(res.detections) == 1
+    m = res.detections[0]
+    assert m.type == marker_type
+    assert np.hypot(m.x - center[0], m.y - center[1]) < 0.1
