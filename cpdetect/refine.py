@@ -496,6 +496,19 @@ def _mirrored(gray: np.ndarray, X: np.ndarray, Y: np.ndarray, x0: float, y0: flo
     return out
 
 
+def _lm_fit(model: "_CheckerModel", p: np.ndarray) -> np.ndarray | None:
+    """Levenberg-Marquardt fit of ``model`` from ``p`` (at most 60 evaluations); None where it
+    diverged: a step to a non-finite parameter (an angle of inf has no cosine, which raises inside
+    the residuals) or a non-finite result."""
+    from scipy.optimize import least_squares
+
+    try:
+        p = least_squares(model.residuals, p, jac=model.jacobian, method="lm", max_nfev=60).x
+    except (ValueError, OverflowError):
+        return None
+    return p if np.all(np.isfinite(p)) else None
+
+
 def refine_model(gray: np.ndarray, x0: float, y0: float, radius_px: float, window_px: float | None = None,
                  max_shift_px: float | None = None, shape_hint: np.ndarray | None = None) -> RefineResult:
     """Least-squares fit of a blurred two-line checker to the raw pixels of the window (see module
@@ -503,8 +516,6 @@ def refine_model(gray: np.ndarray, x0: float, y0: float, radius_px: float, windo
     fit's). window_px: the window's radius, or semi-major axis with ``shape_hint`` (as for
     :func:`refine_symmetry`; default :func:`default_window`, at most MODEL_MAX_WINDOW_PX);
     max_shift_px: how far the centre may move from the seed (default 1 px)."""
-    from scipy.optimize import least_squares
-
     gray = _check_inputs(gray, x0, y0, radius_px)
     w = min(float(window_px) if window_px is not None else default_window(radius_px), MODEL_MAX_WINDOW_PX)
     max_shift = float(max_shift_px) if max_shift_px is not None else 1.0
@@ -536,14 +547,14 @@ def refine_model(gray: np.ndarray, x0: float, y0: float, radius_px: float, windo
     # cut at half the contrast at least: a seed a fraction of a pixel off leaves differences at the
     # edges of a sharp, noise-free pattern, whose other pixels match to 0
     full.weights = _tukey_sqrt(obs - _mirrored(gray, X, Y, x0, y0, w), least_cut=abs(p[5]))
-    p = least_squares(full.residuals, p, jac=full.jacobian, method="lm", max_nfev=60).x
-    if not np.all(np.isfinite(p)):
+    p = _lm_fit(full, p)
+    if p is None:
         return _fail(x0, y0, "model", "fit diverged")
     # the second, from there, those far from the first fit (its residuals taken unweighted)
     full.weights = np.ones(X.size)
     full.weights = _tukey_sqrt(full.residuals(p))
-    p = least_squares(full.residuals, p, jac=full.jacobian, method="lm", max_nfev=60).x
-    if not np.all(np.isfinite(p)):
+    p = _lm_fit(full, p)
+    if p is None:
         return _fail(x0, y0, "model", "fit diverged")
     if math.hypot(p[0] - x0, p[1] - y0) > max_shift:
         return _fail(x0, y0, "model", "moved too far from the seed")

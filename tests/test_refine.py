@@ -157,6 +157,39 @@ def test_failures_are_reported_not_raised():
     assert not refine_center(edge, 40.0, 40.0, 15.0, method="saddle").ok
 
 
+def test_model_fit_that_steps_to_a_non_finite_parameter_fails_instead_of_raising():
+    # a window of image 3775 of the train-split set of seed 606, where the classical detector (every
+    # candidate kept, outer-ring rules off) seeded the model fit: Levenberg-Marquardt stepped to an
+    # infinite line angle and math.cos raised "math domain error" out of the detector
+    from pathlib import Path
+
+    crop = cv2.imread(str(Path(__file__).parent / "data" / "model_fit_steps_to_an_infinite_angle.png"),
+                      cv2.IMREAD_GRAYSCALE)
+    gray = np.zeros((480, 640), np.uint8)
+    gray[361:361 + 96, 193:193 + 96] = crop
+    hint = np.array([[0.8282088076548253, 0.35575904736070646], [0.35575904736070646, 0.26326549079014966]])
+    res = refine_model(gray, 241.89205427424918, 409.30811004506904, 9.086572221471357,
+                       window_px=22.268990271614932, max_shift_px=1.0, shape_hint=hint)
+    assert res.ok is False or (np.isfinite([res.x, res.y, res.sigma_px]).all() and res.sigma_px > 0)
+
+
+def test_model_fit_reports_a_diverged_fit(monkeypatch):
+    # whatever the optimiser's path on another SciPy: a step to an infinite angle is a failed fit
+    import scipy.optimize
+
+    def stepping_to_inf(fun, p, **kwargs):
+        q = np.array(p, float)
+        q[3] = np.inf
+        fun(q)
+        raise AssertionError("the residuals must not accept an infinite angle")
+
+    monkeypatch.setattr(scipy.optimize, "least_squares", stepping_to_inf)
+    img, c, _ = render((80.3, 79.6), 30.0, angle=0.3)
+    res = refine_model(img, c[0], c[1], 30.0)
+    assert not res.ok and res.reason == "fit diverged"
+    assert (res.x, res.y) == (c[0], c[1])
+
+
 def test_bad_arguments_raise():
     img = np.zeros((50, 50), np.float32)
     with pytest.raises(ValueError):
