@@ -24,11 +24,19 @@ Pipeline for one image:
    by an occluder), the outline model fitted to them (square: two straight sides per sector;
    diagonal: one straight side; circle: an ellipse; where its corners fail, the outline from the
    extents along the four checker half-lines, :func:`line_frame_outline`, at a higher score), and an
-   outer ring beyond the outline that must not continue the checker (rejects X-corners inside larger
-   checkerboards and tag bit patterns; a background dark beside one sector and bright beside the
-   next, which inverts only those two, is not held against a marker: train-split dev505 / fit11 /
-   train101 +1 / +2 / +6 markers, no false one). Grout and mullion crosses fail the sector test (thin
-   lines, not solid wedges); edges, text and texture fail the core or the outline. The features
+   outer ring beyond the outline, where X-corners inside larger checkerboards and tag bit patterns
+   show the checker continuing: surroundings inverted, rings alternating between the marker's two
+   levels, sectors not solid out to the outline (a background dark beside one sector and bright
+   beside the next, which inverts only those two, is not held against a marker: train-split
+   dev505 / fit11 / train101 +1 / +2 / +6 markers, no false one). Since 2026-11-27 these feed the
+   score and no longer reject outright: a low-contrast marker on brick or foliage spans both levels
+   there too (train-split dev808 / dev909 / dev1111 / dev1212: +3 / +3 / +3 / +2 markers, false
+   ones 1 / 6 / 10 / 13 -> 2 / 5 / 10 / 13). A square outline lying in a field at the dark sectors'
+   level all around is taken for two bright bit cells of a tag and rejected; a circle or diagonal
+   one is not: bit cells are squares, and such a marker without margin on a dark wall is common
+   (same sets: +1 / +1 / +4 / +2 markers, no false one). Grout and mullion crosses fail the
+   sector test (thin lines, not solid wedges); edges, text and texture fail the core or the
+   outline. The features
    measured on the way (core, outline fit, outer ring) give the **score**, P(marker) from
    gradient-boosted trees fitted on train-split images (:func:`marker_score`); ``min_score`` cuts.
 4. **Type** in the frame of the checker lines (:func:`type_residuals`): a sector's boundary points,
@@ -649,6 +657,10 @@ class _Verifier:
         self.type_rule, self.types_disagreed = "turn", False
         # an outline from the checker lines' extents where the outline model's corners fail
         self.line_frame_fallback = True
+        # the outer ring's checkerboard and tag tests (inverted surroundings, the checker continuing,
+        # sectors not solid to the outline) reject outright (True) or only feed the score (False, the
+        # detector's); the score model decides between marker and confuser on the same features
+        self.outer_rules_reject = False
         # below this score the type is not worked out (the detector's scans drop such candidates;
         # on the smooth 45 MP bench image 8 of the 14 verified candidates score under 0.01)
         self.type_min_score = settings.min_score
@@ -1301,12 +1313,17 @@ class _Verifier:
 
     def outer_ring(self, x, y, outline, D, B, C, bright_ray: np.ndarray, mid_ray: np.ndarray,
                    sec: np.ndarray, mtype: str = "square") -> str | dict:
-        """Around the outline the checker must not continue: just outside (1.12 and 1.25 times the
+        """The outer-ring features of the score (dict), or why the candidate is no marker (str).
+
+        Around the outline the checker must not continue: just outside (1.12 and 1.25 times the
         outline distance) the surroundings of dark sectors and of bright sectors must not both be
-        inverted (bright next to dark, dark next to bright: a checkerboard or a tag's bit cells), and
-        farther out (1.35, 1.6) the ring must not alternate between the marker's two levels. A
+        inverted (bright next to dark, dark next to bright: a checkerboard or a tag's bit cells),
+        farther out (1.35, 1.6) the ring must not alternate between the marker's two levels, and the
+        sectors must be solid out to the outline. With ``outer_rules_reject`` each of these rejects
+        outright; without (the detector), they are left to the score, which weighs the same
+        measurements (``inverted``, ``alternations``, ``outer_mixed``, ``fill``) with the others. A
         ``square`` outline (``mtype``) must not lie in a dark field at the dark sectors' level all
-        around either (two bright bit cells of a tag)."""
+        around either (two bright bit cells of a tag): that rejects in both cases."""
         # distance from the centre to the outline polygon along each ray
         P = outline - np.array([x, y])
         E = np.roll(P, -1, 0) - P  # edges p -> p + e, all rays against all edges at once
@@ -1363,7 +1380,7 @@ class _Verifier:
                 if (hi[0] - hi[1]) % 2 == 1 and shares[hi].min() >= 0.5 and shares[lo].max() <= 0.2:
                     both = float(shares[lo].max())
             inverted = max(inverted, both)
-            if min(dark_next_to_bright, bright_next_to_dark) > 0.6:
+            if min(dark_next_to_bright, bright_next_to_dark) > 0.6 and self.outer_rules_reject:
                 return "inverted surroundings (checkerboard or tag)"
         for i, row in enumerate(V[2:]):
             vis = float(np.isfinite(row).mean())
@@ -1381,9 +1398,9 @@ class _Verifier:
             fd, fb = np.mean(cls == -1), np.mean(cls == 1)
             alt_max = max(alt_max, min(alternations / vis, 12) / 12.0)
             mixed = max(mixed, float(min(fd, fb)))
-            if alternations >= max(3.0, 8 * vis) and fd > 0.3 and fb > 0.3:
+            if alternations >= max(3.0, 8 * vis) and fd > 0.3 and fb > 0.3 and self.outer_rules_reject:
                 return "checker continues beyond the outline (checkerboard or tag)"
-        if fill < 0.75:
+        if fill < 0.75 and self.outer_rules_reject:
             return "sectors not solid out to the outline"
         if dark_surround > 0.85 and mtype == "square":
             return "dark field all around (a tag's bit cells)"
@@ -1420,6 +1437,9 @@ def verify_marker_at(gray: np.ndarray, x: float, y: float, radius_px: float,
     # of a marker at the image border hold first (one marker lost, one false one); its instance model
     # was fitted without it
     verifier.line_frame_fallback = False
+    # the outer ring's checkerboard and tag tests reject outright here, as when hma's score trees
+    # (MODEL_SCORE_FILE) and instance model were fitted
+    verifier.outer_rules_reject = True
     verifier.type_min_score = 0.0  # the caller decides what the score means
     # the detector's own candidates start their rings at various fractions of the radius (their
     # pyramid level); a marker cut by the border or occluded may show its core only from some of them

@@ -777,3 +777,34 @@ def test_marker_without_margin_on_a_wall_of_its_dark_level(det, marker_type):
     m = res.detections[0]
     assert m.type == marker_type
     assert np.hypot(m.x - center[0], m.y - center[1]) < 0.1
+
+
+def test_outer_ring_tests_feed_the_score_instead_of_rejecting(monkeypatch):
+    # image 23 of the train-split set of seed 909: a large circle of low contrast (grey on grey) on
+    # brick, whose joints and bricks span both of its levels beyond the outline. As an outright
+    # test, "the checker continues beyond the outline" refused it; the score, which weighs that
+    # ring's alternation with everything else, takes it for the marker it is
+    import cpdetect.classical as C
+
+    img, markers = generated_photo(23, 909)
+    circle = [m for m in markers if m.type == "circle"]
+    assert len(circle) == 1
+    t = circle[0]
+
+    def found():
+        res = C.ClassicalDetector().detect(img)
+        return [m for m in res.detections if math.hypot(m.x - t.x, m.y - t.y) < 3.0]
+
+    near = found()
+    assert len(near) == 1 and near[0].type == "circle"
+    assert math.hypot(near[0].x - t.x, near[0].y - t.y) < 0.1
+    assert abs(near[0].radius_px / t.radius_px - 1.0) < 0.1
+
+    init = C._Verifier.__init__
+
+    def rejecting(self, *a, **k):
+        init(self, *a, **k)
+        self.outer_rules_reject = True
+
+    monkeypatch.setattr(C._Verifier, "__init__", rejecting)
+    assert found() == []
