@@ -21,13 +21,13 @@ and for the score currently shipped.
     .venv/bin/python bench/fit_score.py --data train606 --data fit11 --data sc707 \
         --check dev505 --check dev808 --check dev909 --cache rows
 
-The rows are those of candidates that the outer ring's checkerboard and tag tests (inverted
-surroundings, the checker continuing, sectors not solid to the outline) let through. Since
-2026-11-27 the detector no longer rejects on those tests and leaves them to these trees, which weigh
-the same measurements: on the train-split dev sets dev808 / dev909 / dev1111 / dev1212, +3 / +3 / +3
-/ +2 markers, false ones 1 / 6 / 10 / 13 -> 2 / 5 / 10 / 13. Trees refitted on the rows without
-those tests (161,861 candidates of the same 6,900 images) did worse in the detector: +3 / -2 / +5 /
-+3 markers, false ones 4 / 4 / 8 / 18.
+The rows are those of candidates that the tests whose measurements these trees weigh too let
+through (``strict_tests``: sectors not uniform; on the outer ring inverted surroundings, the checker
+continuing, sectors not solid to the outline). Since 2026-11-27 the detector no longer rejects on
+those tests and leaves them to these trees: on the train-split dev sets dev808 / dev909 / dev1111 /
+dev1212, +4 / +3 / +6 / +4 markers, false ones 1 / 6 / 10 / 13 -> 2 / 5 / 10 / 13. Trees refitted on
+rows without the outer-ring tests (161,861 candidates of the same 6,900 images) did worse in the
+detector: +3 / -2 / +5 / +3 markers, false ones 4 / 4 / 8 / 18.
 
 Tried on 2026-11-26, not kept: two more features saying whether the four checker lines run on past
 the outline as edges (tile grout, a tag's bit grid and checkerboards carry them on; a marker's lines end at
@@ -91,9 +91,9 @@ def _verified_rows_of(folder: str) -> list[dict]:
 
     def spy(self, *a):
         typein[0] = None
-        # rows of candidates the outer ring's checkerboard and tag tests let through, as the shipped
-        # trees were fitted (see the module doc: the detector leaves those tests to the score)
-        self.outer_rules_reject = True
+        # rows of candidates that the tests the score weighs too let through, as the shipped trees
+        # were fitted (see the module doc: the detector leaves those tests to the score)
+        self.strict_tests = True
         r = orig(self, *a)
         if not isinstance(r, str):
             rows.append(dict(self.last_features, x=r.x, y=r.y, file=cur[0], type=r.type, radius=r.radius,
