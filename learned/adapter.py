@@ -466,9 +466,12 @@ class HMADetector:
 
             image = read_image(image, gray=True)
         gray = as_gray_uint8(image)
-        if gray.shape[0] < 8 or gray.shape[1] < 8:
-            raise ValueError(f"image too small: {gray.shape}")
         h, w = gray.shape
+        if h < 8 or w < 8:
+            # no marker of the least radius fits (as the classical detector finds): nothing, not an error
+            return DetectionResult(detections=[], image_size=(w, h), probability=np.zeros((h, w), np.float32),
+                                   seconds=time.perf_counter() - t0,
+                                   extras={"backend": self.backend.name, "scales": [], "probability_factor": 1.0})
         pm = self.probability(gray)
         dets, prob = self._instances(gray, pm.prob, pm.factor, seeds,
                                      classical.detections if s.classical_markers else None)

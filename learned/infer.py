@@ -5,7 +5,8 @@ Pipeline for one gray uint8 image (H, W):
 1. downscale by ``f = min(1, max_side / max(H, W))`` (cv2.INTER_AREA) to the processing size;
 2. cut the processing image into tiles of at most ``tile`` x ``tile`` pixels overlapping by
    ``overlap`` (one tile when it fits);
-3. per tile and per scale s: resize (bilinear) to s, pad (reflect) to a multiple of 32, run the
+3. per tile and per scale s: resize (bilinear) to s, pad (reflect) to a multiple of 32 and at least
+   64 per side (``SIZE_MIN``), run the
    backend's single-scale trunk -> class logits (K, h, w) and attention (h, w), crop the padding;
 4. fuse the scales recursively exactly as :meth:`learned.hma.HMAModel.nscale_forward` does, in numpy
    (one implementation for both backends);
@@ -34,6 +35,10 @@ import cv2
 import numpy as np
 
 SIZE_MULTIPLE = 32
+# no side under 64 (the coarsest branch at least 2 pixels): OpenCV 5.0's DNN returned logits of
+# 3.4e38 for a 32 x 96 input of the shipped network, and a run through 62 x 188, 46 x 141 and 31 x 94
+# (a 31 x 94 image at scales 2, 1.5, 1) ended in a segmentation fault; 64 and more give the torch values
+SIZE_MIN = 64
 ONNX_FILE = "model.onnx"
 
 
@@ -45,9 +50,10 @@ class TrunkBackend(Protocol):
     def trunk(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
 
-def _pad_to_multiple(x: np.ndarray, m: int = SIZE_MULTIPLE) -> np.ndarray:
+def _pad_to_multiple(x: np.ndarray, m: int = SIZE_MULTIPLE, least: int = SIZE_MIN) -> np.ndarray:
+    """``x`` (h, w) padded at the bottom and right to a multiple of ``m`` of at least ``least`` per side."""
     h, w = x.shape
-    ph, pw = (-h) % m, (-w) % m
+    ph, pw = max((-h) % m, least - h), max((-w) % m, least - w)
     if ph == 0 and pw == 0:
         return x
     mode = cv2.BORDER_REFLECT_101 if min(h, w) > 1 else cv2.BORDER_REPLICATE

@@ -62,6 +62,17 @@ class DetectorContract:
         tex = np.clip(textured_background((240, 320), seed=5), 0, 255).astype(np.uint8)
         assert detector.detect(tex).detections == []
 
+    @pytest.mark.parametrize("shape", [(1, 1), (7, 9), (5, 300), (300, 6), (31, 94)])
+    def test_tiny_images_give_nothing(self, detector, shape):
+        # (31, 94): at scales 2, 1.5 and 1 the OpenCV DNN trunk of the shipped hma network once ended
+        # in a segmentation fault (its inputs are now padded to at least 64 x 64)
+        img = ((np.random.default_rng(0).random(shape) < 0.5) * 255).astype(np.uint8)
+        res = detector.detect(img)
+        assert res.detections == []
+        assert res.image_size == (shape[1], shape[0])
+        if res.probability is not None:
+            assert np.isfinite(np.asarray(res.probability)).all()
+
     def test_result_types(self, detector):
         img = marker_image()
         res = detector.detect(img)

@@ -371,3 +371,19 @@ def test_centre_found_when_the_blob_centroid_is_far_off(marker_type):
     assert HMADetector.with_backend(OracleBackend(blob), max_seeds=0).detect(img).detections == []
     with pytest.raises(ValueError, match="type_by"):
         HMADetector.with_backend(OracleBackend(blob), type_by="colour")
+
+
+@pytest.mark.skipif(not shipped_weights_present(), reason="the shipped hma weights (learned/weights/default) are absent")
+def test_opencv_trunk_on_a_side_under_64_pixels():
+    # OpenCV 5.0's DNN gave logits of 3.4e38 for a 32 x 96 input of the shipped network (and once a
+    # segmentation fault further on); the backends pad every input to at least 64 x 64
+    from learned.adapter import DEFAULT_MODEL_DIR
+    from learned.infer import open_backend, torch_available
+
+    x = np.random.default_rng(0).random((32, 96)).astype(np.float32)
+    logits, attention = open_backend(DEFAULT_MODEL_DIR, "opencv").trunk(x)
+    assert logits.shape == (2, 32, 96) and attention.shape == (32, 96)
+    assert np.isfinite(logits).all() and np.abs(logits).max() < 100
+    if torch_available() and (DEFAULT_MODEL_DIR / "model.pt").exists():
+        ref, ref_att = open_backend(DEFAULT_MODEL_DIR, "torch").trunk(x)
+        assert np.abs(logits - ref).max() < 1e-3 and np.abs(attention - ref_att).max() < 1e-3
