@@ -12,6 +12,7 @@ detections, its size and its camera model agree.
 from __future__ import annotations
 
 import os
+import re
 import sys
 import tempfile
 import threading
@@ -299,13 +300,47 @@ def _raise_if_damaged(printed: list[str], p: Path) -> None:
         raise InputError(f"damaged JPEG data ({what}; the decoder would fill the rest in grey)", p)
 
 
+# what libpng, libtiff (through OpenCV's log) and OpenCV's own decoders print about data they could
+# not decode; libtiff may still return an image whose damaged strips are left blank or garbled (an
+# LZW stream with a wrong code: "Using code not yet in table")
+_DECODE_ERRORS = ("libpng error: ", "TIFF_Error ", "can't read data: ", "readData OpenCV TIFF")
+# "OpenCV(5.0.0) /path/bitstrm.cpp:59: error: (-2:Unspecified error) Unexpected end of input stream in
+# function 'readBlock'" -> "Unexpected end of input stream"
+_CV_ERROR = re.compile(r"error: \([^)]*\) (.*?)(?: in function .*)?$")
+
+
+def _decode_errors(printed: list[str]) -> list[str]:
+    """The decoder's own words for each error line among ``printed``; the other non-blank lines are
+    passed on to standard error."""
+    errors, rest = [], []
+    for ln in printed:
+        hit = next((m for m in _DECODE_ERRORS if m in ln), None)
+        if hit is None:
+            if ln.strip():
+                rest.append(ln)
+            continue
+        words = ln.split(hit, 1)[1].strip(" :")
+        if hit == "readData OpenCV TIFF":  # "(line 1234): failed TIFFReadRGBAStrip(tif, y, ...)"
+            words = words.split("): ", 1)[-1]
+        cv = _CV_ERROR.search(words)
+        errors.append((cv.group(1) if cv else words) or ln.strip())
+    if rest:
+        os.write(2, ("\n".join(rest) + "\n").encode())
+    return errors
+
+
 def _decode_other(data: np.ndarray, info_fmt: str, p: Path, gray: bool, reduce: int) -> np.ndarray:
     import cv2
 
+    fmt = info_fmt.upper()
     # UNCHANGED keeps 16-bit depth and alpha so they can be converted deliberately below.
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    with _captured_stderr() as printed:
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    errors = _decode_errors(printed)
     if img is None:
-        raise InputError(f"corrupt {info_fmt.upper()} (cannot decode)", p)
+        raise InputError(f"corrupt {fmt} (cannot decode{': ' + errors[0] if errors else ''})", p)
+    if errors:
+        raise InputError(f"damaged {fmt} data ({errors[0]}; part of the image would not come from the file)", p)
     if img.ndim == 2 or img.shape[2] == 1:
         img = img.reshape(img.shape[0], img.shape[1])
         if not gray:

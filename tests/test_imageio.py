@@ -185,3 +185,29 @@ def test_a_folder_without_images_says_what_it_holds(tmp_path, jpeg):
     empty.mkdir()
     with pytest.raises(InputError, match=r"in folder$"):
         list_images(empty)
+
+
+def _garbled(ext: str) -> bytes:
+    """A textured image encoded as ``ext`` with 2,000 bytes in the middle of its data overwritten."""
+    rng = np.random.default_rng(3)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (240, 320, 3)).astype(np.uint8), (0, 0), 2.0)
+    data = bytearray(cv2.imencode("." + ext, img)[1].tobytes())
+    mid = len(data) // 2
+    data[mid:mid + 2000] = rng.integers(0, 256, 2000, dtype=np.uint8).tobytes()
+    return bytes(data)
+
+
+@pytest.mark.parametrize("ext, cut, message", [
+    ("png", False, "corrupt PNG (cannot decode: "),
+    # libtiff returns an image for a garbled LZW strip, with the decoder's error only printed
+    ("tif", False, "damaged TIFF data ("),
+    ("bmp", True, "corrupt BMP (cannot decode: Unexpected end of input stream)"),
+])
+def test_decoder_errors_are_one_error_naming_the_file(tmp_path, capfd, ext, cut, message):
+    p = tmp_path / f"garbled.{ext}"
+    data = _garbled(ext)
+    p.write_bytes(data[: len(data) // 2] if cut else data)
+    with pytest.raises(InputError) as e:
+        read_image(p)
+    assert message in str(e.value) and str(p) in str(e.value) and "\n" not in str(e.value)
+    assert capfd.readouterr().err.strip() == ""  # said once, in the error
