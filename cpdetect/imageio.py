@@ -288,13 +288,17 @@ def _captured_stderr():
                 lines.extend(tmp.read().decode("utf-8", "replace").splitlines())
 
 
+def _pass_on(lines: list[str]) -> None:
+    """Writes captured decoder lines that are not turned into an error back to standard error."""
+    if lines:
+        os.write(2, ("\n".join(lines) + "\n").encode())
+
+
 def _raise_if_damaged(printed: list[str], p: Path) -> None:
     """InputError for the first damage warning among ``printed``; the other lines are passed on."""
     damage = [ln for ln in printed
               if ln.lower().startswith(_JPEG_DAMAGE) and not any(b in ln.lower() for b in _BENIGN)]
-    rest = [ln for ln in printed if ln not in damage]
-    if rest:
-        os.write(2, ("\n".join(rest) + "\n").encode())
+    _pass_on([ln for ln in printed if ln not in damage])
     if damage:
         what = damage[0].split(":", 1)[-1].strip() if damage[0].lower().startswith("corrupt") else damage[0]
         raise InputError(f"damaged JPEG data ({what}; the decoder would fill the rest in grey)", p)
@@ -324,8 +328,7 @@ def _decode_errors(printed: list[str]) -> list[str]:
             words = words.split("): ", 1)[-1]
         cv = _CV_ERROR.search(words)
         errors.append((cv.group(1) if cv else words) or ln.strip())
-    if rest:
-        os.write(2, ("\n".join(rest) + "\n").encode())
+    _pass_on(rest)
     return errors
 
 
