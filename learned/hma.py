@@ -288,6 +288,46 @@ def read_config(directory: str | os.PathLike) -> HMAConfig:
         raise InputError(f"invalid model config: {exc}", path) from None
 
 
+def _first_sentence(exc: BaseException) -> str:
+    """The first sentence of an exception's message (torch appends paragraphs of advice), or its type."""
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+    return text.split(". ")[0].rstrip(".") or type(exc).__name__
+
+
+def load_torch_file(path: str | os.PathLike, what: str, map_location: str | torch.device = "cpu"):
+    """``torch.load`` of a file a user gave (weights, a checkpoint) with ``weights_only``: tensors and
+    plain values only, never arbitrary pickled objects, which could run code on loading. Every
+    failure is one :class:`cpdetect.errors.InputError` naming the file and, in words, what is wrong
+    with it (torch's own message for a damaged file can be a bare number)."""
+    import pickle
+
+    from cpdetect.errors import InputError
+
+    p = Path(path)
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(4)
+    except OSError as exc:
+        raise InputError(f"cannot read {what}: {exc.strerror or exc}", p) from None
+    if not head:
+        raise InputError(f"cannot read {what}: empty file", p)
+    try:
+        return torch.load(p, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        if "weights only" in str(exc).lower():
+            raise InputError(f"cannot read {what}: it holds Python objects besides tensors and plain values, "
+                             "which cpdetect does not load (they could run code)", p) from None
+        why = _first_sentence(exc)
+    except Exception as exc:  # noqa: BLE001 - torch raises many kinds for a damaged file
+        why = _first_sentence(exc)
+    # the format torch.save writes is a zip archive; the legacy one a pickle (protocol 2+: 0x80)
+    if head == b"PK\x03\x04":
+        raise InputError(f"cannot read {what}: damaged or truncated PyTorch file ({why})", p)
+    if head[:1] == b"\x80":
+        raise InputError(f"cannot read {what}: damaged or truncated PyTorch file (legacy format; {why})", p)
+    raise InputError(f"cannot read {what}: not a PyTorch file", p)
+
+
 def load_model(directory: str | os.PathLike, map_location: str | torch.device = "cpu") -> HMAModel:
     """Rebuild the model from ``directory`` (config.json + model.pt), in eval mode."""
     from cpdetect.errors import InputError
@@ -299,14 +339,18 @@ def load_model(directory: str | os.PathLike, map_location: str | torch.device = 
     wpath = d / WEIGHTS_FILE
     if not wpath.exists():
         raise InputError("model weights not found", wpath)
-    try:
-        state = torch.load(wpath, map_location=map_location, weights_only=True)
-    except Exception as exc:  # corrupt or truncated file
-        raise InputError(f"cannot read model weights: {exc}", wpath) from None
+    state = load_torch_file(wpath, "model weights", map_location)
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise InputError("not a state dict (a dict of tensors, as save_model writes)", wpath)
     try:
         model.load_state_dict(state)
     except RuntimeError as exc:
-        raise InputError(f"weights do not match config.json: {str(exc).splitlines()[0]}", wpath) from None
+        # torch's first line only names the model class; the next says which tensors differ
+        lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+        detail = lines[1] if len(lines) > 1 else lines[0] if lines else ""
+        if len(detail) > 160:
+            detail = detail[:157] + "..."
+        raise InputError(f"weights do not match config.json: {detail}", wpath) from None
     return model.eval()
 
 
@@ -333,5 +377,5 @@ def config_json(config: HMAConfig) -> str:
     return json.dumps(config.to_dict(), indent=1)
 
 
-__all__ = ["HMAConfig", "HMAModel", "PRESETS", "preset", "build_model", "save_model", "load_model", "read_config",
+__all__ = ["HMAConfig", "HMAModel", "PRESETS", "preset", "build_model", "save_model", "load_model", "load_torch_file", "read_config",
            "load_matching", "marker_probability", "count_parameters", "init_weights"]

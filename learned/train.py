@@ -32,7 +32,8 @@ import torch
 
 from .data import AugmentConfig, CropDataset, Sample, samples_from_dataset, split_samples
 from .devices import resolve_device
-from .hma import HMAModel, build_model, load_matching, marker_probability, preset, read_config, save_model
+from .hma import (HMAModel, build_model, load_matching, load_torch_file, marker_probability, preset, read_config,
+                  save_model)
 from .rmi import HMALossWeights, RMIStats, hma_loss
 
 log = logging.getLogger(__name__)
@@ -139,16 +140,29 @@ def read_state(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor], dict |
         cfg = None
     if not p.exists():
         raise InputError("checkpoint not found", p)
-    try:
-        obj = torch.load(p, map_location="cpu", weights_only=False)
-    except Exception as exc:
-        raise InputError(f"cannot read checkpoint: {exc}", p) from None
+    obj = load_torch_file(p, "checkpoint")
     if isinstance(obj, dict) and "model" in obj and isinstance(obj["model"], dict):
         cfg = obj.get("config", cfg)
         obj = obj["model"]
     if not isinstance(obj, dict) or not all(isinstance(v, torch.Tensor) for v in obj.values()):
         raise InputError("not a state dict or cpdetect checkpoint", p)
     return obj, cfg
+
+
+_CHECKPOINT_KEYS = ("model", "optimizer", "iteration", "config", "torch_rng")
+
+
+def _read_checkpoint(path: Path) -> dict:
+    """A training checkpoint of :func:`_save_checkpoint` for ``--resume``; InputError naming the file
+    when it is damaged or is something else."""
+    from cpdetect.errors import InputError
+
+    obj = load_torch_file(path, "checkpoint")
+    if not isinstance(obj, dict) or any(k not in obj for k in _CHECKPOINT_KEYS):
+        raise InputError("not a cpdetect training checkpoint (it lacks "
+                         + ", ".join(k for k in _CHECKPOINT_KEYS if not isinstance(obj, dict) or k not in obj)
+                         + ")", path)
+    return obj
 
 
 def init_from(model: HMAModel, path: str | os.PathLike) -> tuple[list[str], list[str]]:
@@ -298,7 +312,7 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
           val_samples: list[Sample] | None = None, progress: bool = True,
           on_iteration: Callable[[int, dict], None] | None = None) -> TrainResult:
     """Train (or resume) a model into ``cfg.out``; ``samples`` overrides reading ``cfg.data``."""
-    from cpdetect.errors import UsageError
+    from cpdetect.errors import InputError, UsageError
     from cpdetect.fileio import write_json_atomic
 
     t_start = time.time()
@@ -308,6 +322,11 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
     if out.exists() and not out.is_dir():
         raise UsageError(f"{out}: --out must be a folder, this is a file")
     ckpt_path = out / CHECKPOINT
+    # batch normalisation in training needs two values per channel or more; the coarsest map of the
+    # half-scale pass (stride 32) has ceil(crop / 64) pixels a side: 1 at a 64 px crop
+    if cfg.batch * math.ceil(cfg.crop / 64) ** 2 < 2:
+        raise UsageError(f"--batch {cfg.batch} with --crop {cfg.crop}: the half-scale pass's coarsest map is 1 pixel, "
+                         "too few for batch normalisation; use --batch 2 or more, or --crop 96 or more")
 
     if samples is None:
         samples = samples_from_dataset(cfg.data)
@@ -336,8 +355,19 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
     if resume:
         if not ckpt_path.exists():
             raise UsageError(f"--resume: no {CHECKPOINT} in {out}")
-        checkpoint = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        model = build_model(checkpoint["config"])
+        checkpoint = _read_checkpoint(ckpt_path)
+        started = checkpoint.get("train_config")
+        for name in ("optimizer", "freeze_backbone"):
+            # the optimizer's saved state only loads into the same optimizer over the same parameters
+            was = started.get(name) if isinstance(started, dict) else None
+            if was is not None and was != getattr(cfg, name):
+                flag = "--" + name.replace("_", "-")
+                raise UsageError(f"--resume: the run in {out} was started with {flag} {was}, this one has "
+                                 f"{getattr(cfg, name)}; resume with the same setting")
+        try:
+            model = build_model(checkpoint["config"])
+        except (TypeError, ValueError, KeyError) as exc:
+            raise InputError(f"checkpoint's model config is invalid: {exc}", ckpt_path) from None
     elif cfg.init and cfg.model == "from-init":
         _, init_cfg = read_state(cfg.init)
         if init_cfg is None:
@@ -359,11 +389,16 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
     base_lr = base_learning_rate(cfg)
     it, best = 0, None
     if checkpoint is not None:
-        model.load_state_dict(checkpoint["model"])
-        opt.load_state_dict(checkpoint["optimizer"])
-        it = int(checkpoint["iteration"])
-        best = checkpoint.get("best_iou")
-        torch.set_rng_state(checkpoint["torch_rng"])
+        try:
+            model.load_state_dict(checkpoint["model"])
+            opt.load_state_dict(checkpoint["optimizer"])
+            it = int(checkpoint["iteration"])
+            best = checkpoint.get("best_iou")
+            torch.set_rng_state(checkpoint["torch_rng"])
+        except (TypeError, ValueError, RuntimeError, KeyError) as exc:
+            # e.g. a checkpoint of another --optimizer or of a frozen backbone resumed without it
+            why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise InputError(f"checkpoint does not fit this run: {why}", ckpt_path) from None
         log.info("resumed from %s at iteration %d (best IoU %s)", ckpt_path, it, best)
     # the folder appears only once the inputs are good (a failed start leaves nothing behind)
     out.mkdir(parents=True, exist_ok=True)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -160,6 +161,42 @@ def test_load_errors_name_the_file(tmp_path):
         load_model(other)
     (d / "config.json").write_text('{"format": "cpdetect-hma", "version": 1, "bogus": 1}')
     with pytest.raises(InputError, match="bogus"):
+        load_model(d)
+
+
+class _RunsCodeWhenUnpickled:
+    """Pickles as a call of os.mkdir: loading it with plain pickle would create ``path``."""
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def __reduce__(self):
+        return (os.mkdir, (self.path,))
+
+
+def test_damaged_or_unsafe_weight_files_are_refused_in_words(tmp_path):
+    from learned.hma import load_torch_file
+    from learned.train import read_state
+
+    d = save_model(calibrated(), tmp_path / "m")
+    good = (d / "model.pt").read_bytes()
+    cases = [(b"", "empty file"), (b"junk\n", "not a PyTorch file"),
+             (good[: len(good) // 2], "damaged or truncated PyTorch file")]
+    for data, why in cases:
+        (d / "model.pt").write_bytes(data)
+        with pytest.raises(InputError, match=why) as exc:
+            load_model(d)
+        assert "model.pt" in str(exc.value) and "\n" not in str(exc.value)
+    # a pickled object that runs code on loading is refused, and its code never runs
+    marker = tmp_path / "code_ran"
+    torch.save({"w": _RunsCodeWhenUnpickled(marker)}, tmp_path / "unsafe.pt")
+    for load in (lambda p: load_torch_file(p, "checkpoint"), read_state):
+        with pytest.raises(InputError, match="could run code"):
+            load(tmp_path / "unsafe.pt")
+    assert not marker.exists()
+    # weights that are not a state dict
+    torch.save([torch.zeros(2)], d / "model.pt")
+    with pytest.raises(InputError, match="not a state dict"):
         load_model(d)
 
 
@@ -492,6 +529,44 @@ def test_a_new_run_refuses_to_overwrite_a_checkpoint(tmp_path):
     with pytest.raises(UsageError, match="already holds a training run.*--resume"):
         train(_cfg(tmp_path / "m", epochs=1), samples=s[:2], val_samples=s[2:], progress=False)
     assert (tmp_path / "m" / "checkpoint.pt").read_bytes() == before
+
+
+def test_resume_refuses_a_damaged_checkpoint_or_another_optimizer(tmp_path):
+    from cpdetect.errors import UsageError
+    from learned.train import train
+
+    s = _tiny_samples()
+    train(_cfg(tmp_path / "m", epochs=1), samples=s[:2], val_samples=s[2:], progress=False)
+    ck = tmp_path / "m" / "checkpoint.pt"
+    good = ck.read_bytes()
+    with pytest.raises(UsageError, match="started with --optimizer sgd, this one has adamw"):
+        train(_cfg(tmp_path / "m", epochs=2, optimizer="adamw"), resume=True, samples=s[:2], val_samples=s[2:],
+              progress=False)
+    with pytest.raises(UsageError, match="started with --freeze-backbone False"):
+        train(_cfg(tmp_path / "m", epochs=2, freeze_backbone=True), resume=True, samples=s[:2],
+              val_samples=s[2:], progress=False)
+    ck.write_bytes(good[: len(good) // 3])
+    with pytest.raises(InputError, match="checkpoint.pt.*damaged or truncated"):
+        train(_cfg(tmp_path / "m", epochs=2), resume=True, samples=s[:2], val_samples=s[2:], progress=False)
+    torch.save({"model": {}}, ck)
+    with pytest.raises(InputError, match="not a cpdetect training checkpoint .*optimizer"):
+        train(_cfg(tmp_path / "m", epochs=2), resume=True, samples=s[:2], val_samples=s[2:], progress=False)
+
+
+def test_a_batch_too_small_for_batch_norm_is_refused_before_anything_is_written(tmp_path):
+    from cpdetect.errors import UsageError
+    from learned.data import AugmentConfig
+    from learned.train import train
+
+    s = _tiny_samples()
+    # one 64 px crop: the half-scale pass ends in a 1 x 1 map, and torch's batch norm would fail
+    # inside the first iteration
+    with pytest.raises(UsageError, match="--batch 2 or more, or --crop 96"):
+        train(_cfg(tmp_path / "m", batch=1, crop=64), samples=s[:2], val_samples=s[2:], progress=False)
+    assert not (tmp_path / "m").exists()
+    res = train(_cfg(tmp_path / "ok", batch=1, crop=96, augment=AugmentConfig(crop=96), epochs=1, iters_per_epoch=1),
+                samples=s[:2], val_samples=s[2:], progress=False)
+    assert res.iterations == 1
 
 
 def test_unknown_optimizer_is_refused(tmp_path):
