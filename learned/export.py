@@ -15,7 +15,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from .hma import HMAModel
+from .digests import record_digest
+from .hma import CONFIG_FILE, HMAModel
 
 OPSET = 17
 
@@ -50,6 +51,8 @@ def export_onnx(model: HMAModel, path: str | os.PathLike, sample_size: tuple[int
                                                              "trunk": {2: "height", 3: "width"}},
                           dynamo=False)
     model.eval()
+    if (path.parent / CONFIG_FILE).exists():  # into a model folder: its digest beside the others
+        record_digest(path)
     return path
 
 

@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .digests import check_digest, record_digest
 from .hrnet import HRNet, HRNetConfig, bn, resize_to
 from .ocr import OCRHead
 
@@ -268,6 +269,7 @@ def save_model(model: HMAModel, directory: str | os.PathLike, extra: dict | None
     state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     with atomic_path(d / WEIGHTS_FILE) as tmp:
         torch.save(state, tmp)
+    record_digest(d / WEIGHTS_FILE)
     write_json_atomic(d / CONFIG_FILE, cfg)
     return d
 
@@ -339,6 +341,7 @@ def load_model(directory: str | os.PathLike, map_location: str | torch.device = 
     wpath = d / WEIGHTS_FILE
     if not wpath.exists():
         raise InputError("model weights not found", wpath)
+    check_digest(wpath)
     state = load_torch_file(wpath, "model weights", map_location)
     if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
         raise InputError("not a state dict (a dict of tensors, as save_model writes)", wpath)

@@ -27,12 +27,15 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol, Sequence
 
 import cv2
 import numpy as np
+
+from .digests import check_digest
 
 SIZE_MULTIPLE = 32
 # no side under 64 (the coarsest branch at least 2 pixels): OpenCV 5.0's DNN returned logits of
@@ -107,10 +110,18 @@ class OpenCVBackend:
         p = Path(onnx_path)
         if not p.is_file():
             raise InputError("ONNX model not found", p)
+        check_digest(p)
+        if p.stat().st_size == 0:
+            raise InputError("empty file (not an ONNX model)", p)
         try:
             self.net = cv2.dnn.readNetFromONNX(str(p))
         except cv2.error as exc:
-            raise InputError(f"OpenCV cannot load the ONNX model: {str(exc).strip().splitlines()[-1]}", p) from None
+            # OpenCV's text: "OpenCV(5.0.0) /path/to/source.cpp:346: error: (-210:...) Failed to parse
+            # ONNX model: FILE in function 'parseFile'": its words only
+            msg = str(exc).strip().splitlines()[-1]
+            m = re.search(r"error: \(-?\d+:[^)]*\)\s*(.*?)(?: in function '[^']*')?$", msg)
+            why = (m.group(1) if m else msg).replace(str(p), "").rstrip(" :")
+            raise InputError(f"OpenCV cannot load the ONNX model: {why}", p) from None
         self.path = p
         self.threads = int(threads) if threads else None
 

@@ -179,6 +179,7 @@ def test_damaged_or_unsafe_weight_files_are_refused_in_words(tmp_path):
     from learned.train import read_state
 
     d = save_model(calibrated(), tmp_path / "m")
+    (d / "SHA256SUMS").unlink()  # a folder without digests: torch reads each file, and we say why not
     good = (d / "model.pt").read_bytes()
     cases = [(b"", "empty file"), (b"junk\n", "not a PyTorch file"),
              (good[: len(good) // 2], "damaged or truncated PyTorch file")]
@@ -198,6 +199,64 @@ def test_damaged_or_unsafe_weight_files_are_refused_in_words(tmp_path):
     torch.save([torch.zeros(2)], d / "model.pt")
     with pytest.raises(InputError, match="not a state dict"):
         load_model(d)
+
+
+def _flip_a_weight_byte(path, tensor):
+    """Change one byte inside ``tensor``'s stored bytes in ``path`` (the file still loads)."""
+    data = bytearray(path.read_bytes())
+    at = bytes(data).find(tensor.detach().contiguous().numpy().tobytes())
+    assert at > 0
+    data[at + 5] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+def test_weight_digests_catch_a_changed_byte_in_torch_and_onnx_files(tmp_path):
+    from learned.digests import file_sha256, read_digests
+    from learned.export import export_onnx
+    from learned.infer import OpenCVBackend
+
+    m = calibrated()
+    d = save_model(m, tmp_path / "m")
+    assert read_digests(d) == {"model.pt": file_sha256(d / "model.pt")}
+    onnx = export_onnx(m, d / "model.onnx")  # into the model folder: recorded beside model.pt
+    assert set(read_digests(d)) == {"model.pt", "model.onnx"}
+    OpenCVBackend(onnx)
+    big = max(m.state_dict().values(), key=lambda t: t.numel())
+    _flip_a_weight_byte(d / "model.pt", big)
+    with pytest.raises(InputError, match="model.pt: damaged: its SHA-256 is not the one in SHA256SUMS"):
+        load_model(d)
+    data = bytearray(onnx.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    onnx.write_bytes(bytes(data))
+    with pytest.raises(InputError, match="model.onnx: damaged"):
+        OpenCVBackend(onnx)
+    # a file without a line is not checked: the changed model.pt loads once its line is gone
+    (d / "SHA256SUMS").write_text(f"{read_digests(d)['model.onnx']}  model.onnx\n")
+    assert load_model(d).config == m.config
+    # an export outside a model folder leaves no digest file behind
+    export_onnx(m, tmp_path / "loose.onnx")
+    assert not (tmp_path / "SHA256SUMS").exists()
+    (d / "SHA256SUMS").write_text("not a digest line\n")
+    with pytest.raises(InputError, match="SHA256SUMS: line 1 is not"):
+        load_model(d)
+    # without digests, a file OpenCV cannot parse is named in OpenCV's words, without its source paths
+    (d / "SHA256SUMS").unlink()
+    onnx.write_bytes(b"junk")
+    with pytest.raises(InputError, match=r"model.onnx: OpenCV cannot load the ONNX model: Failed to parse ONNX model$"):
+        OpenCVBackend(onnx)
+    onnx.write_bytes(b"")
+    with pytest.raises(InputError, match="model.onnx: empty file"):
+        OpenCVBackend(onnx)
+
+
+def test_the_shipped_weights_match_their_digests():
+    from learned.adapter import default_model_dir
+    from learned.digests import check_digest, read_digests
+
+    d = default_model_dir()
+    assert set(read_digests(d)) == {"model.pt", "model.onnx"}
+    for name in ("model.pt", "model.onnx"):
+        check_digest(d / name)
 
 
 def test_config_round_trips_through_dict():
