@@ -1680,8 +1680,12 @@ class _Scan:
                               & (cand_c >= 0.9 * c.contrast) & (cand_scale <= 0.25 * v.radius))[0]
             r_small = max(1.5, 0.15 * v.radius)
             axes = verifier.xcorner_axes(v.x, v.y, r_small) if s.saddle_axes and near.size else None
+            # a marker found already is an X-corner of those levels whatever its axes: from a junction
+            # of its sector edges with its outline (three regions) its centre shows as a neighbour
+            found = [a for a, _ in accepted if 0.4 * v.radius < math.hypot(a.x - v.x, a.y - v.y) < 1.7 * v.radius]
             if any(verifier.is_xcorner(cand_xy[j, 0], cand_xy[j, 1], r_small, v.levels, axes=axes)
-                   for j in near[np.argsort(-cand_c[near])][:8]):
+                   for j in near[np.argsort(-cand_c[near])][:8]) \
+                    or any(verifier.is_xcorner(a.x, a.y, r_small, v.levels) for a in found):
                 rejected += 1
                 continue
             shift = max(2.0 * scale, 0.3 * v.radius)
