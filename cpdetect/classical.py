@@ -41,6 +41,11 @@ Pipeline for one image:
    outline. The features
    measured on the way (core, outline fit, outer ring) give the **score**, P(marker) from
    gradient-boosted trees fitted on train-split images (:func:`marker_score`); ``min_score`` cuts.
+   A candidate that passes is a corner of a larger checker (checkerboard, tag) when another X-corner
+   of its grey levels, about as strong, lies 0.4-1.7 radii away (the single-saddle test); since
+   2026-11-27 only one whose sector edges run along the centre's, as on one checker's grid, or a
+   marker found already (``saddle_axes``: a saddle of the wall's texture at another angle had
+   refused 4 true markers on the train-split dev sets).
 4. **Type** in the frame of the checker lines (:func:`type_residuals`): a sector's boundary points,
    divided by the outline's extents along its two bounding lines, lie on the unit L1 ball for a
    diagonal, L2 for a circle, L-infinity for a square, in any affine view (train-split sets: type
