@@ -288,24 +288,49 @@ class _Levels:
 
     def _sample_level(self, i: int, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
         """Bilinear samples of level i at full-res points (any shape), float32, NaN outside."""
-        import cv2
-
         s, img = self.items[i]
         lx = ((xs + 0.5) / s - 0.5).astype(np.float32).ravel()
         ly = ((ys + 0.5) / s - 0.5).astype(np.float32).ravel()
-        n = lx.size
-        if n < 32767:  # remap wants maps under 32767 rows and columns
-            mx, my = lx.reshape(1, -1), ly.reshape(1, -1)
-        else:
-            cols = 1024
-            pad = (-n) % cols
-            mx = np.concatenate([lx, np.zeros(pad, np.float32)]).reshape(-1, cols)
-            my = np.concatenate([ly, np.zeros(pad, np.float32)]).reshape(-1, cols)
-        v = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()[:n]
-        v = v.astype(np.float32, copy=False)  # the full-resolution level is uint8
         h, w = img.shape[:2]
+        if max(h, w) < REMAP_MAX:
+            v = _remap_points(img, lx, ly)
+        else:
+            # remap refuses images of 32767 pixels a side or more (orthophotos, strips): each block of
+            # the image (with a margin for the bilinear neighbours) serves the points that fall in it
+            v = np.empty(lx.size, np.float32)
+            bx = np.clip(np.floor(lx / REMAP_BLOCK), 0, (w - 1) // REMAP_BLOCK).astype(np.int64)
+            by = np.clip(np.floor(ly / REMAP_BLOCK), 0, (h - 1) // REMAP_BLOCK).astype(np.int64)
+            key = by * (w // REMAP_BLOCK + 1) + bx
+            for k in np.unique(key):
+                sel = np.nonzero(key == k)[0]
+                x0 = max(int(bx[sel[0]]) * REMAP_BLOCK - 2, 0)
+                y0 = max(int(by[sel[0]]) * REMAP_BLOCK - 2, 0)
+                block = img[y0:min(y0 + REMAP_BLOCK + 4, h), x0:min(x0 + REMAP_BLOCK + 4, w)]
+                v[sel] = _remap_points(block, lx[sel] - x0, ly[sel] - y0)
         v[(lx < -0.5) | (ly < -0.5) | (lx > w - 0.5) | (ly > h - 0.5)] = np.nan
         return v.reshape(np.shape(xs))
+
+
+REMAP_MAX = 32767  # cv2.remap wants images and maps under this many rows and columns
+REMAP_BLOCK = 16384
+
+
+def _remap_points(img: np.ndarray, lx: np.ndarray, ly: np.ndarray) -> np.ndarray:
+    """Bilinear samples (float32, flat) of ``img`` at points (lx, ly) of its own pixels, the border
+    replicated. For a block of a larger image, the points must lie within it but for beyond the
+    image's own border (there replication gives the image's values)."""
+    import cv2
+
+    n = lx.size
+    if n < REMAP_MAX:
+        mx, my = lx.reshape(1, -1), ly.reshape(1, -1)
+    else:
+        cols = 1024
+        pad = (-n) % cols
+        mx = np.concatenate([lx, np.zeros(pad, np.float32)]).reshape(-1, cols)
+        my = np.concatenate([ly, np.zeros(pad, np.float32)]).reshape(-1, cols)
+    v = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()[:n]
+    return v.astype(np.float32, copy=False)  # the full-resolution level is uint8
 
 
 # ------------------------------------------------------------------------------------------------

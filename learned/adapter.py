@@ -313,9 +313,19 @@ def checker_phase_type(gray: np.ndarray, cx: float, cy: float, radius: float, qu
     n = 96
     th = np.linspace(0, 2 * np.pi, n, endpoint=False)
     rs = radius * np.array([0.3, 0.4, 0.5, 0.6])
-    xs = (cx + np.cos(th)[None] * rs[:, None]).astype(np.float32)
-    ys = (cy + np.sin(th)[None] * rs[:, None]).astype(np.float32)
-    vals = cv2.remap(gray.astype(np.float32), xs, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).mean(0)
+    # only the rings' window is read: a float copy of a 45 MP image is 180 MB, and remap refuses
+    # images of 32767 pixels a side or more; the window reaches the image's border wherever the rings
+    # pass it, so replicating its border is replicating the image's
+    h, w = gray.shape[:2]
+    reach = float(rs[-1]) + 2.0
+    x0 = int(np.clip(np.floor(cx - reach), 0, w - 1))
+    y0 = int(np.clip(np.floor(cy - reach), 0, h - 1))
+    x1 = int(np.clip(np.ceil(cx + reach) + 2, x0 + 1, w))
+    y1 = int(np.clip(np.ceil(cy + reach) + 2, y0 + 1, h))
+    win = np.asarray(gray[y0:y1, x0:x1], np.float32)
+    xs = (cx - x0 + np.cos(th)[None] * rs[:, None]).astype(np.float32)
+    ys = (cy - y0 + np.sin(th)[None] * rs[:, None]).astype(np.float32)
+    vals = cv2.remap(win, xs, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).mean(0)
     vals = vals - vals.mean()
     # I(theta) ~ a cos(2 theta - phi): bright sectors centred at phi / 2 (+ 180); boundaries at phi/2 +- 45
     z = np.sum(vals * np.exp(-2j * th))

@@ -178,11 +178,13 @@ def open_backend(model_dir: str | os.PathLike, backend: str = "auto", device: st
 
 def resize_scale_np(x: np.ndarray, s: float) -> np.ndarray:
     """Bilinear rescale by ``s`` to floor(size * s), like torch interpolate(scale_factor=s,
-    recompute_scale_factor=True, align_corners=False) without antialiasing."""
+    recompute_scale_factor=True, align_corners=False) without antialiasing; at least 1 pixel a side
+    (a 30000 x 9 strip, downscaled to ``max_side`` 2048, is 1 pixel wide, and its half-scale pass
+    would be 0)."""
     if s == 1.0:
         return x
     h, w = x.shape[-2:]
-    return resize_to_np(x, (int(np.floor(h * s)), int(np.floor(w * s))))
+    return resize_to_np(x, (max(1, int(np.floor(h * s))), max(1, int(np.floor(w * s)))))
 
 
 def resize_to_np(x: np.ndarray, hw: tuple[int, int]) -> np.ndarray:

@@ -12,7 +12,8 @@ import pytest
 
 from cpdetect import get_detector
 from cpdetect.classical import ClassicalDetector
-from cpdetect.markers import MarkerSpec, plane_homography, projected_center, projected_radius, render_marker
+from cpdetect.markers import (MarkerSpec, frontal_homography, plane_homography, projected_center, projected_radius,
+                              render_marker)
 from cpdetect.types import MARKER_TYPES
 
 from detector_contract import DetectorContract, marker_image, textured_background
@@ -783,6 +784,26 @@ def generated_photo(index: int, seed: int):
     sample = generate_image(index, seed, SynthImageOptions(split="train"), BackgroundLibrary(list_backgrounds("train")))
     jpeg = _encode(sample.image, "jpg", sample.jpeg_quality)
     return cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR), sample.markers
+
+
+def test_markers_in_an_image_wider_than_remap_allows_are_found_across_its_blocks():
+    # cv2.remap refuses images of 32767 pixels a side or more (orthophotos, panoramas): the full
+    # image is sampled block by block, here around a block seam (16384) and far out (36000)
+    from cpdetect.classical import REMAP_BLOCK
+
+    shape = (200, 40000)
+    img = textured_background(shape, 4)
+    truth = [(REMAP_BLOCK - 0.3, 99.6, "square"), (36000.4, 100.2, "circle")]
+    for (x, y, kind), angle in zip(truth, (0.3, 0.9)):
+        spec = MarkerSpec(kind, size_m=1.0)
+        H = frontal_homography((x, y), 30.0, angle, spec)
+        render_marker(spec, H, shape).composite(img, 35.0, 220.0)
+    img = np.clip(img + np.random.default_rng(5).normal(0, 1.5, shape) + 0.5, 0, 255).astype(np.uint8)
+    dets = ClassicalDetector().detect(img).detections
+    assert len(dets) == 2
+    for x, y, kind in truth:
+        (m,) = [d for d in dets if math.hypot(d.x - x, d.y - y) < 3]
+        assert m.type == kind and math.hypot(m.x - x, m.y - y) < 0.1
 
 
 def test_a_junction_on_a_found_markers_outline_is_no_marker():

@@ -74,6 +74,27 @@ def test_checker_phase_separates_square_from_diagonal(marker_type, angle):
     assert checker_phase_type(img, 128.0, 128.0, 24.0 * 2 / np.sqrt(np.pi), quad) == marker_type
 
 
+@pytest.mark.parametrize("marker_type", ["square", "diagonal"])
+def test_checker_phase_reads_a_window_so_images_of_any_width_work(marker_type):
+    # the rings were sampled from a float copy of the whole image: 180 MB on a 45 MP photograph, and
+    # cv2.remap refuses images of 32767 pixels a side or more
+    img, mask, _ = rendered(marker_type, angle=0.3)
+    _, quad = classify_shape(mask)
+    wide = np.full((256, 40000), 128, np.uint8)
+    wide[:, 39000:39256] = img
+    assert checker_phase_type(wide, 39128.0, 128.0, 24.0 * 2 / np.sqrt(np.pi), quad + [39000.0, 0.0]) == marker_type
+
+
+@pytest.mark.skipif(not shipped_weights_present(), reason="shipped hma weights not present")
+@pytest.mark.parametrize("shape", [(30000, 9), (9, 30000), (4097, 2)])
+def test_strips_that_downscale_to_one_pixel_give_no_detection(shape):
+    # downscaled to max_side 2048, a 30000 x 9 strip is 1 pixel wide and its half-scale pass was 0
+    # pixels: "internal error" from cv2.resize before
+    strip = np.random.default_rng(0).integers(0, 256, shape).astype(np.uint8)
+    res = get_detector("hma", backend="opencv").detect(strip)
+    assert res.detections == [] and res.image_size == (shape[1], shape[0])
+
+
 @pytest.mark.parametrize("marker_type", ["square", "circle", "diagonal"])
 def test_instances_from_an_oracle_probability_map(marker_type):
     center = (121.3, 133.6)
