@@ -1,6 +1,7 @@
 """Reading photographs safely: every failure is a one-line :class:`InputError` naming the file.
 
-Images come back as uint8 (8-bit gray or BGR). 16-bit images are scaled to 8 bits, alpha is dropped.
+Images come back as uint8 (8-bit gray or BGR). 16-bit images are scaled to 8 bits by their data's
+bit depth (10-, 12- and 14-bit data in 16-bit files keep their contrast), alpha is dropped.
 Pixels come back as stored in the file: an EXIF orientation tag is *not* applied (OpenCV applies it
 to JPEGs by default, and not to other formats). COLMAP and OpenSfM / OpenDroneMap measure image
 points in the stored frame too; Metashape keeps the tag beside its sensor's stored size. The sizes
@@ -135,12 +136,21 @@ def probe_image(path: str | os.PathLike) -> ImageInfo:
 
 
 def _to_uint8(img: np.ndarray) -> np.ndarray:
+    """8 bits from a decoded image. 16-bit: shifted right by the data's own bit depth less 8, so 10-,
+    12- or 14-bit data in a 16-bit file (machine-vision and thermal cameras) keep their contrast (the
+    high byte alone left 12-bit data 16 grey levels); full-range data lose their low byte as before.
+    Float: [0, 1] to 0..255, data up to 255 as they are, larger ones scaled by their maximum. All linear (no
+    clipping, no stretch): the detectors' contrast thresholds keep their meaning in grey levels."""
     if img.dtype == np.uint8:
         return img
     if img.dtype == np.uint16:
-        return (img >> 8).astype(np.uint8)
+        shift = max(int(img.max(initial=0)).bit_length() - 8, 0)
+        return (img >> shift).astype(np.uint8)
     if np.issubdtype(img.dtype, np.floating):
-        return np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
+        img = np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0)
+        top = float(img.max(initial=0.0))
+        scale = 255.0 if top <= 1.0 else 1.0 if top <= 255.0 else 255.0 / top
+        return np.clip(img * scale + 0.5, 0, 255).astype(np.uint8)
     return np.clip(img, 0, 255).astype(np.uint8)
 
 

@@ -142,6 +142,35 @@ def test_16bit_and_alpha_are_converted(tmp_path):
     assert read_image(pa).shape == (4, 6, 3)
 
 
+def test_12_bit_data_in_a_16_bit_file_keep_their_contrast_and_a_marker_is_found(tmp_path):
+    # machine-vision and thermal cameras write 10-14-bit data in 16-bit files: the high byte alone
+    # left a 12-bit marker 11 grey levels of contrast, under the classical detector's 12
+    from cpdetect.classical import ClassicalDetector
+    from cpdetect.markers import MarkerSpec, frontal_homography, render_marker
+
+    img = np.full((200, 240), 120.0, np.float32)
+    spec = MarkerSpec("circle", size_m=1.0)
+    render_marker(spec, frontal_homography((120.3, 99.6), 30.0, 0.4, spec), img.shape).composite(img, 35.0, 220.0)
+    twelve = (np.clip(img + 0.5, 0, 255).astype(np.uint16) * 16)  # 12-bit data: 560..3520
+    p = tmp_path / "mono12.png"
+    cv2.imwrite(str(p), twelve)
+    g = read_image(p, gray=True)
+    assert int(g.max()) == 220 and int(g.min()) == 35  # shifted by 12 - 8 bits, not 8
+    (m,) = ClassicalDetector().detect(str(p)).detections
+    assert abs(m.x - 120.3) < 0.1 and abs(m.y - 99.6) < 0.1
+    # full-range 16-bit data keep the high byte, as before
+    full = tmp_path / "full16.png"
+    cv2.imwrite(str(full), (np.clip(img + 0.5, 0, 255).astype(np.uint16) * 257))
+    assert np.array_equal(read_image(full, gray=True), np.clip(img + 0.5, 0, 255).astype(np.uint8))
+    # float data: [0, 1] to 0..255, up to 255 as they are, larger ones scaled by their maximum
+    want = np.clip(img + 0.5, 0, 255).astype(np.int64)
+    stretched = np.clip(img * (255.0 / 220.0) + 0.5, 0, 255).astype(np.int64)  # its maximum (1000) to 255
+    for name, data, expect in (("unit.tif", img / 255.0, want), ("grey.tif", img, want),
+                               ("wide.tif", img * (1000.0 / 220.0), stretched)):
+        cv2.imwrite(str(tmp_path / name), data)
+        assert np.abs(read_image(tmp_path / name, gray=True).astype(int) - expect).max() <= 1, name
+
+
 def test_huge_image_is_refused_before_decoding(tmp_path):
     # A valid PNG header announcing 30000 x 30000 pixels; the body is never decoded.
     import struct
