@@ -48,6 +48,25 @@ class ImageInfo:
     format: str  # "jpeg", "png", "tiff", "bmp"
 
 
+# formats people do photograph in, which OpenCV's build here may or may not decode reliably:
+# named in the error, so that a WebP or HEIC file is not called "not an image"
+_UNSUPPORTED = (
+    (lambda h: h[:4] == b"RIFF" and h[8:12] == b"WEBP", "WebP"),
+    (lambda h: h[4:8] == b"ftyp" and h[8:12] in (b"heic", b"heix", b"mif1", b"msf1", b"hevc", b"heim", b"heis"), "HEIC/HEIF"),
+    (lambda h: h[4:8] == b"ftyp" and h[8:12] in (b"avif", b"avis"), "AVIF"),
+    (lambda h: h.startswith(b"\x00\x00\x00\x0cjP  \r\n\x87\n") or h.startswith(b"\xff\x4f\xff\x51"), "JPEG 2000"),
+    (lambda h: h[:6] in (b"GIF87a", b"GIF89a"), "GIF"),
+)
+
+
+def _not_an_image(head: bytes) -> str:
+    """The error for a file whose first bytes are no JPEG, PNG, TIFF or BMP."""
+    for test, name in _UNSUPPORTED:
+        if test(head):
+            return f"unsupported image format ({name}): convert it to JPEG, PNG or TIFF"
+    return "not an image (unrecognised format)"
+
+
 def _sniff(head: bytes) -> str | None:
     if head.startswith(b"\xff\xd8\xff"):
         return "jpeg"
@@ -105,7 +124,7 @@ def probe_image(path: str | os.PathLike) -> ImageInfo:
         raise InputError("image file is empty (0 bytes)", p)
     fmt = _sniff(head)
     if fmt is None:
-        raise InputError("not an image (unrecognised format)", p)
+        raise InputError(_not_an_image(head), p)
     width = height = None
     if fmt == "jpeg":
         if tail[-2:] != b"\xff\xd9":
@@ -236,7 +255,7 @@ def _checked_bytes(p: Path) -> tuple[np.ndarray, str]:
         raise InputError("image file is empty (0 bytes)", p)
     info_fmt = _sniff(data[:16].tobytes())
     if info_fmt is None:
-        raise InputError("not an image (unrecognised format)", p)
+        raise InputError(_not_an_image(data[:16].tobytes()), p)
     if info_fmt == "jpeg" and data[-2:].tobytes() != b"\xff\xd9":
         raise InputError("truncated JPEG (no end-of-image marker)", p)
     wh = None

@@ -98,6 +98,13 @@ BAD_IMAGES = {
     "truncated PNG": ("cut.png", lambda jpg, png: png[: len(png) // 2], "truncated PNG"),
     "text named .jpg": ("notes.jpg", lambda jpg, png: b"just some text\n", "not an image"),
     "huge 20001x20000 PNG": ("huge.png", lambda jpg, png: _png_header(20001, 20000), "too large (20001x20000"),
+    # formats people photograph in that cpdetect does not read: named, not "not an image"
+    "WebP": ("photo.webp", lambda jpg, png: b"RIFF\x24\x00\x00\x00WEBPVP8 " + b"\x00" * 32,
+             "unsupported image format (WebP): convert it to JPEG, PNG or TIFF"),
+    "HEIC named .jpg": ("IMG_0001.jpg", lambda jpg, png: b"\x00\x00\x00\x18ftypheic\x00\x00\x00\x00mif1heic" + b"\x00" * 16,
+                        "unsupported image format (HEIC/HEIF)"),
+    "JPEG 2000": ("ortho.jp2", lambda jpg, png: b"\x00\x00\x00\x0cjP  \r\n\x87\n" + b"\x00" * 32,
+                  "unsupported image format (JPEG 2000)"),
 }
 
 
@@ -112,6 +119,20 @@ def test_bad_image_alone(cli, tmp_path, marker_jpeg, case):
     res = cli("-q", "detect", bad, "--out", out / "det.json")
     assert_one_line_error(res, bad, words)
     assert not out.exists()
+
+
+@pytest.mark.parametrize("detector", ["classical", "hma"])
+@pytest.mark.parametrize("shape", [(40, 40000), (30000, 9)])
+def test_images_wider_than_remap_allows_or_thin_strips_are_read(cli, tmp_path, detector, shape):
+    # "internal error" before: cv2.remap refuses images of 32767 px a side (classical), and a strip
+    # downscaled to 2048 px was 0 px wide at hma's half scale
+    p = tmp_path / "strip.png"
+    p.write_bytes(_png_bytes(np.random.default_rng(0).integers(0, 256, shape).astype(np.uint8)))
+    out = tmp_path / "det.json"
+    res = cli("-q", "detect", p, "--detector", detector, "--out", out)
+    assert res.rc == 0 and res.err == []
+    (im,) = json.loads(out.read_text())["images"]
+    assert (im["width"], im["height"]) == (shape[1], shape[0]) and im["detections"] == []
 
 
 def test_bad_image_among_good_ones_keeps_finished_parts_then_skip_bad(cli, tmp_path):
