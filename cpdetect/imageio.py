@@ -67,6 +67,9 @@ def _not_an_image(head: bytes) -> str:
     return "not an image (unrecognised format)"
 
 
+_NOT_A_FILE = "neither an image file nor a folder (a device, pipe or socket)"
+
+
 def _sniff(head: bytes) -> str | None:
     if head.startswith(b"\xff\xd8\xff"):
         return "jpeg"
@@ -110,6 +113,8 @@ def probe_image(path: str | os.PathLike) -> ImageInfo:
         raise InputError("image not found", p)
     if p.is_dir():
         raise InputError("expected an image file, found a folder", p)
+    if not p.is_file():
+        raise InputError(_NOT_A_FILE, p)
     try:
         size = p.stat().st_size
         with open(p, "rb") as fh:
@@ -243,6 +248,8 @@ def _check_reduce(reduce: int) -> None:
 
 def _checked_bytes(p: Path) -> tuple[np.ndarray, str]:
     """The file's bytes and format, after the checks that need no decoding."""
+    if p.exists() and not p.is_file() and not p.is_dir():
+        raise InputError(_NOT_A_FILE, p)  # reading a pipe or a device could block or never end
     try:
         data = np.fromfile(str(p), dtype=np.uint8)
     except FileNotFoundError:
@@ -406,6 +413,8 @@ def list_images(path: str | os.PathLike) -> list[Path]:
         raise InputError("not found", p)
     if p.is_file():
         return [p]
+    if not p.is_dir():  # a device, pipe or socket: reading one could block or never end
+        raise InputError(_NOT_A_FILE, p)
     files = sorted(f for f in p.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES)
     if not files:
         raise InputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder{_what_is_there(p)}", p)

@@ -135,6 +135,18 @@ def test_images_wider_than_remap_allows_or_thin_strips_are_read(cli, tmp_path, d
     assert (im["width"], im["height"]) == (shape[1], shape[0]) and im["detections"] == []
 
 
+def test_a_pipe_or_a_device_is_refused_without_reading_it(cli, tmp_path):
+    # a named pipe would block the read forever; /dev/zero was "internal error: NotADirectoryError"
+    import os
+
+    fifo = tmp_path / "photo.jpg"
+    os.mkfifo(fifo)
+    for p in (fifo, Path("/dev/zero")):
+        res = cli("-q", "detect", p, "--out", tmp_path / "out" / "det.json")
+        assert_one_line_error(res, p, "neither an image file nor a folder")
+    assert not (tmp_path / "out").exists()
+
+
 def test_bad_image_among_good_ones_keeps_finished_parts_then_skip_bad(cli, tmp_path):
     images = write_marker_images(tmp_path / "in", 3)
     bad = images / "zz_cut.jpg"
