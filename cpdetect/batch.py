@@ -140,7 +140,9 @@ def detect_batch(jobs: Sequence[BatchJob], detector_name: str, settings: dict, o
     given, else a Dask cluster if ``scheduler`` (address or ``distributed.Client``), else ``workers``
     local processes (1: in this process).
     """
-    out = Path(out)
+    from .fileio import output_target
+
+    out = output_target(out)
     parts = out.with_name(out.name + ".parts")
     if out.is_dir():
         raise InputError("the output is a folder; give a file name such as detections.json", out)

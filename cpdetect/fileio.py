@@ -11,14 +11,29 @@ from typing import Any, Iterator
 from .errors import InputError
 
 
+def output_target(path: str | os.PathLike) -> Path:
+    """The file an output named ``path`` is written to: a symbolic link's target (so that the rename
+    of :func:`atomic_path` replaces the file it points to, not the link). InputError naming ``path``
+    for an existing device, pipe or socket: renaming a file onto ``/dev/null`` as root replaces the
+    device itself, and writing into a pipe is not atomic."""
+    given = Path(path)
+    target = Path(os.path.realpath(given)) if given.is_symlink() else given
+    if target.exists() and not target.is_file() and not target.is_dir():
+        raise InputError("not a regular file (a device, pipe or socket); outputs are written to files", given)
+    if given.is_symlink() and not target.exists() and not target.parent.is_dir():
+        raise InputError(f"a link to {target}, which cannot be created", given)
+    return target
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path in the target's folder; rename it onto ``path`` only on success.
 
     The folder is created if needed. A write that raises removes the temporary file and leaves any
-    previous ``path`` untouched.
+    previous ``path`` untouched. ``path`` goes through :func:`output_target` (links followed,
+    devices and pipes refused).
     """
-    path = Path(path)
+    path = output_target(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)

@@ -147,6 +147,20 @@ def test_a_pipe_or_a_device_is_refused_without_reading_it(cli, tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_a_pipe_as_the_output_is_refused_and_left_as_it_is(cli, tmp_path):
+    # as root, "--out /dev/null" replaced the device with a regular file (the finished output is
+    # renamed onto the target); a named pipe stands in for the device here
+    import os
+    import stat
+
+    images = write_marker_images(tmp_path / "in", 1)
+    out = tmp_path / "det.json"
+    os.mkfifo(out)
+    res = cli("-q", "detect", images, "--out", out)
+    assert_one_line_error(res, out, "not a regular file (a device, pipe or socket)")
+    assert stat.S_ISFIFO(os.stat(out).st_mode) and files_under(tmp_path) == ["det.json", "in", "in/0000.jpg"]
+
+
 def test_bad_image_among_good_ones_keeps_finished_parts_then_skip_bad(cli, tmp_path):
     images = write_marker_images(tmp_path / "in", 3)
     bad = images / "zz_cut.jpg"

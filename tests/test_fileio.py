@@ -43,3 +43,26 @@ def test_read_json_errors_name_file_and_line(tmp_path):
         read_json(p)
     with pytest.raises(InputError, match="not found"):
         read_json(tmp_path / "absent.json")
+
+
+def test_an_output_through_a_link_replaces_the_linked_file_and_keeps_the_link(tmp_path):
+    real = tmp_path / "results" / "out.json"
+    real.parent.mkdir()
+    real.write_text("old\n")
+    link = tmp_path / "out.json"
+    link.symlink_to(real)
+    write_json_atomic(link, {"a": 1})
+    assert link.is_symlink() and json.loads(real.read_text()) == {"a": 1}
+
+
+def test_a_pipe_is_no_output_file_and_is_left_as_it_is(tmp_path):
+    # renaming the finished file onto a device or a pipe replaces the device itself (as root,
+    # --out /dev/null replaced /dev/null with a regular file); a pipe stands in for one here
+    fifo = tmp_path / "out.json"
+    os.mkfifo(fifo)
+    link = tmp_path / "via_link.json"
+    link.symlink_to(fifo)
+    for p in (fifo, link):
+        with pytest.raises(InputError, match="not a regular file"):
+            write_json_atomic(p, {"a": 1})
+    assert stat.S_ISFIFO(os.stat(fifo).st_mode) and sorted(x.name for x in tmp_path.iterdir()) == ["out.json", "via_link.json"]
