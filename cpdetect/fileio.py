@@ -17,7 +17,11 @@ def output_target(path: str | os.PathLike) -> Path:
     for an existing device, pipe or socket: renaming a file onto ``/dev/null`` as root replaces the
     device itself, and writing into a pipe is not atomic."""
     given = Path(path)
-    target = Path(os.path.realpath(given)) if given.is_symlink() else given
+    try:
+        target = Path(os.path.realpath(given)) if given.is_symlink() else given
+        target.exists()
+    except OSError as exc:  # e.g. a name over 255 bytes
+        raise InputError(f"cannot write here: {exc.strerror or exc}", given) from None
     if target.exists() and not target.is_file() and not target.is_dir():
         raise InputError("not a regular file (a device, pipe or socket); outputs are written to files", given)
     if given.is_symlink() and not target.exists() and not target.parent.is_dir():
@@ -36,7 +40,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     path = output_target(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
+        # the temporary name stays within the 255 bytes a name may have wherever the target's does
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name[:64]}.", suffix=".part", dir=path.parent)
     except OSError as exc:
         raise InputError(f"cannot write here: {exc.strerror or exc}", path) from None
     os.close(fd)
