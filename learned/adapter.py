@@ -71,11 +71,14 @@ def shipped_weights_present() -> bool:
     return (d / "config.json").exists() and ((d / "model.pt").exists() or (d / "model.onnx").exists())
 
 
+MAX_SCALE = 4.0  # the largest inference scale: twice the paper's largest (2.0)
+
+
 @dataclass(frozen=True)
 class HMASettings:
     """Settings of the ``hma`` detector.
 
-    model_dir: model folder (None = the shipped weights). scales: inference scales (must contain 1.0),
+    model_dir: model folder (None = the shipped weights). scales: inference scales (must contain 1.0, each in (0, 4]),
     default (0.5, 1.0): two-scale HMA, as trained; (1.0,) is faster. small_scales: the scales for an
     image small enough that its largest pass fits in ``max_side`` (default (0.5, 1.0, 1.5, 2.0), so up
     to 1024 px for the default max_side; None = always ``scales``): the 2.0 pass shows the network
@@ -216,12 +219,13 @@ class HMASettings:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "scales", tuple(float(s) for s in self.scales))
-        if 1.0 not in self.scales or min(self.scales) <= 0:
-            raise ValueError(f"scales must be positive and include 1.0, got {self.scales}")
+        # a pass at scale s holds s^2 times a tile's pixels: 50 asked 19 GB of one 1024-px tile
+        if 1.0 not in self.scales or min(self.scales) <= 0 or max(self.scales) > MAX_SCALE:
+            raise ValueError(f"scales must be in (0, {MAX_SCALE:g}] and include 1.0, got {self.scales}")
         if self.small_scales:
             object.__setattr__(self, "small_scales", tuple(float(s) for s in self.small_scales))
-            if 1.0 not in self.small_scales or min(self.small_scales) <= 0:
-                raise ValueError(f"small_scales must be positive and include 1.0, got {self.small_scales}")
+            if 1.0 not in self.small_scales or min(self.small_scales) <= 0 or max(self.small_scales) > MAX_SCALE:
+                raise ValueError(f"small_scales must be in (0, {MAX_SCALE:g}] and include 1.0, got {self.small_scales}")
         else:
             object.__setattr__(self, "small_scales", None)
         if self.backend not in ("auto", "torch", "opencv"):

@@ -203,6 +203,11 @@ def test_settings_are_checked():
         HMADetector.with_backend(OracleBackend(np.zeros((4, 4))), threshold=1.5)
     with pytest.raises(UsageError, match="small_scales"):
         get_detector("hma", small_scales=[2.0])
+    # a pass at scale 50 asked 19 GB for one 1024-px tile ("internal error: Insufficient memory")
+    for key in ("scales", "small_scales"):
+        with pytest.raises(UsageError, match=rf"{key} must be in \(0, 4\]"):
+            get_detector("hma", **{key: [1.0, 50.0]})
+    assert get_detector("hma", scales=[0.25, 1.0, 4.0]).settings.scales == (0.25, 1.0, 4.0)
     with pytest.raises(ValueError, match="clear_rejected_below"):
         HMADetector.with_backend(OracleBackend(np.zeros((4, 4))), clear_rejected_below=1.5)
     with pytest.raises(ValueError, match="max_sigma_verified_px"):
