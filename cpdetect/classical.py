@@ -216,6 +216,8 @@ class ClassicalSettings:
             raise ValueError("min_contrast must be positive")
         if not self.search_megapixels >= 0.01:
             raise ValueError("search_megapixels must be >= 0.01")
+        if not self.max_candidates_per_level >= 1:  # -1 sliced off the strongest list's last one
+            raise ValueError("max_candidates_per_level must be >= 1")
         if self.refine_method not in METHODS:
             raise ValueError(f"unknown refine_method {self.refine_method!r}")
         if not 0.0 <= self.min_score <= 1.0:

@@ -257,6 +257,9 @@ def test_unknown_setting_is_refused():
     for bad in (-0.5, 1.5):
         with pytest.raises(UsageError, match="retry_score must be in"):
             get_detector("classical", retry_score=bad)
+    for bad in (0, -1):  # -1 was taken, and sliced the last candidate off each level's list
+        with pytest.raises(UsageError, match="max_candidates_per_level must be >= 1"):
+            get_detector("classical", max_candidates_per_level=bad)
 
 
 def test_retry_keeps_the_best_ring_start():
