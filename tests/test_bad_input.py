@@ -504,3 +504,12 @@ def test_in_a_real_process(tmp_path, case):
     assert r.stdout == ""
     assert len(r.stderr.splitlines()) == 1 and str(bad) in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("argv", [["synth", "images", "--n", "1"], ["synth", "scene"], ["demo"]])
+def test_a_negative_seed_is_a_usage_error(cli, tmp_path, argv):
+    # NumPy refuses negative seeds: "internal error: ValueError: expected non-negative integer" before
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as exc:
+        cli("-q", *argv, *(["--out", out] if argv[0] == "synth" else ["--workdir", out]), "--seed", "-3")
+    assert exc.value.code == 2 and not out.exists()

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from ..errors import UsageError
+from .args import seed_arg
 
 
 def register(sub) -> None:
@@ -36,7 +37,7 @@ def register(sub) -> None:
     g.add_argument("--crs", help="CRS of the surveyed points when gcps.csv does not name it")
     g.add_argument("--mode", default="auto", choices=["auto", "cloud", "ray", "triangulate"],
                    help="georef localisation mode (default auto)")
-    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--seed", type=seed_arg, default=0)
     g.add_argument("--rejects", type=Path, metavar="REJECTS.json",
                    help="detections marked wrong in an earlier report's review gallery (rejects.json): "
                         "every detector's georef run drops them")

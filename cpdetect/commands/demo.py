@@ -9,6 +9,8 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from .args import seed_arg
+
 log = logging.getLogger(__name__)
 
 
@@ -18,7 +20,7 @@ def register(sub) -> None:
                                    "registered detectors on it.")
     p.add_argument("--workdir", default="cpdetect-demo", help="folder for all demo outputs (default ./cpdetect-demo)")
     p.add_argument("--n", type=int, default=12, help="synthetic images to generate (default 12)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="random seed (default 0)")
     p.add_argument("--detectors", nargs="*", metavar="NAME",
                    help="detectors to evaluate (default: every registered one)")
     p.add_argument("--no-georef", action="store_true",

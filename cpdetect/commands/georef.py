@@ -4,6 +4,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from .args import seed_arg
+
 
 def register(sub) -> None:
     p = sub.add_parser("georef", help="georeference a reconstruction from the markers in its photos",
@@ -40,7 +42,7 @@ def register(sub) -> None:
     p.add_argument("--loss", default="huber", choices=["huber", "cauchy", "soft_l1", "linear"])
     p.add_argument("--noise", type=float, default=0.02,
                    help="per-axis survey + detection noise assumed by the registration, metres (default 0.02)")
-    p.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="seed of every random choice (default 0)")
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.set_defaults(func=run)
 

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..errors import InputError, UsageError
 from ..fileio import write_json_atomic
+from .args import seed_arg
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +35,7 @@ def register(sub) -> None:
                    help="inlier distance in metres (default: 6 x --noise, adapted to the residuals)")
     p.add_argument("--noise", type=float, default=0.01,
                    help="expected per-axis noise of the points after scaling, metres (default 0.01)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (probe selection)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="random seed (probe selection)")
     p.add_argument("--out", required=True, help="registration JSON to write")
     p.set_defaults(func=run)
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 import logging
 import time
 
+from .args import seed_arg
+
 log = logging.getLogger(__name__)
 
 
@@ -14,7 +16,7 @@ def register(kinds) -> None:
                                      "image i depends only on (seed, i).")
     p.add_argument("--out", required=True, help="output dataset folder (images/, masks/, markers.json)")
     p.add_argument("--n", type=int, default=100, help="number of images (default 100)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="random seed (default 0)")
     p.add_argument("--size", default="640x480", help="image size WxH in pixels (default 640x480)")
     p.add_argument("--split", choices=("train", "test", "all"), default="all",
                    help="which backgrounds to use: the held-out 'test' ~20%% per category, the rest "

@@ -6,6 +6,7 @@ import logging
 import re
 
 from ..errors import UsageError
+from .args import seed_arg
 
 log = logging.getLogger(__name__)
 
@@ -26,7 +27,7 @@ def register(kinds) -> None:
                     "'Synthetic sites'.")
     p.add_argument("--out", required=True, help="output folder (created; must be new or empty unless "
                                                 "--overwrite)")
-    p.add_argument("--seed", type=int, default=0, help="random seed; a seed always gives the same site")
+    p.add_argument("--seed", type=seed_arg, default=0, help="random seed; a seed always gives the same site")
     p.add_argument("--images", type=int, default=48, help="number of images (default 48)")
     p.add_argument("--size", default="1024x683", help="image size WIDTHxHEIGHT (default 1024x683; "
                                                       "8192x5460 is the paper's camera)")

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import logging
 
+from .args import seed_arg
+
 log = logging.getLogger(__name__)
 
 
@@ -38,7 +40,7 @@ def register(sub) -> None:
     p.add_argument("--small-marker-bias", type=float, default=0.0, metavar="B",
                    help="draw the crops' markers with probability ~ radius ** -B, to train more on small "
                         "markers (default 0: every marker alike)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="random seed (default 0)")
     p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda, cuda:1 ...")
     p.add_argument("--threads", type=int, default=2, help="CPU threads (default 2)")
     p.add_argument("--workers", type=int, default=0,
