@@ -103,8 +103,8 @@ class SiteSettings:
                 raise UsageError(f"{name.replace('_', '-')} must be >= 0")
         if self.markers + self.unsurveyed_markers + self.missing_markers + self.hidden_surveyed > 40:
             raise UsageError("at most 40 markers in all fit on the surveyed part of the pier")
-        if self.pose_noise < 0 or self.survey_sigma < 0:
-            raise UsageError("noise sigmas must be >= 0")
+        if not (self.pose_noise >= 0 and self.survey_sigma >= 0) or not math.isfinite(self.pose_noise + self.survey_sigma):
+            raise UsageError("noise sigmas must be finite and >= 0")  # NaN passed "< 0" and broke the JSON
         if not 0.002 <= self.cloud_spacing <= 0.1:
             raise UsageError("--cloud-spacing must be within 0.002..0.1 m")
         if not 1 <= self.supersample <= 16:

@@ -513,3 +513,22 @@ def test_a_negative_seed_is_a_usage_error(cli, tmp_path, argv):
     with pytest.raises(SystemExit) as exc:
         cli("-q", *argv, *(["--out", out] if argv[0] == "synth" else ["--workdir", out]), "--seed", "-3")
     assert exc.value.code == 2 and not out.exists()
+
+
+@pytest.mark.parametrize("argv, words", [
+    # the ONNX file was written, then the check failed against a tolerance no difference can meet
+    (["export-onnx", "MODEL", "OUT/m.onnx", "--tolerance", "-1"], "--tolerance must be a positive number"),
+    # NaN passed the "< 0" check and ended in "internal error" when the scene's JSON was written
+    (["synth", "scene", "--out", "OUT/site", "--survey-sigma", "nan"], "noise sigmas must be finite"),
+    (["train", "--data", "OUT/none", "--out", "OUT/model", "--checkpoint-minutes", "-1"],
+     "--checkpoint-minutes must be >= 0"),
+])
+def test_numbers_out_of_range_are_refused_before_anything_is_written(cli, tmp_path, argv, words):
+    pytest.importorskip("torch")
+    from learned.adapter import default_model_dir
+
+    out = tmp_path / "out"
+    args = [str(default_model_dir()) if a == "MODEL" else a.replace("OUT", str(out)) for a in argv]
+    res = cli("-q", *args)
+    assert_one_line_error(res, words)
+    assert not out.exists()

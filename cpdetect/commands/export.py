@@ -30,6 +30,8 @@ def run(args) -> int:
         if exc.name in ("torch", "onnx"):
             raise UsageError(f"'cpdetect export-onnx' needs {exc.name}: pip install 'cpdetect[learned]'") from None
         raise
+    if not args.tolerance > 0 or args.tolerance == float("inf"):  # checked before anything is written
+        raise UsageError(f"--tolerance must be a positive number, got {args.tolerance}")
     model = load_model(args.model_dir)
     path = export_onnx(model, args.out)
     log.info("wrote %s", path)

@@ -68,6 +68,8 @@ def run(args) -> int:
         raise UsageError("--workers must be >= 0")
     if args.lr is not None and not args.lr > 0:
         raise UsageError("--lr must be positive")
+    if not args.checkpoint_minutes >= 0:
+        raise UsageError("--checkpoint-minutes must be >= 0 (0: at every iteration)")
     if not 0 <= args.val_frac < 1:
         raise UsageError("--val-frac must be in [0, 1)")
     if args.crop % 32:
