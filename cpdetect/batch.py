@@ -90,8 +90,13 @@ def run_one(detector: Any, job: BatchJob, skip_bad: bool) -> dict:
         if not skip_bad:
             raise
         return {"file": job.rel, "error": exc.message}
-    return {"file": job.rel, "width": int(info.width), "height": int(info.height), "seconds": round(res.seconds, 4),
-            "detections": [d.to_dict() for d in res.detections]}
+    rec = {"file": job.rel, "width": int(info.width), "height": int(info.height), "seconds": round(res.seconds, 4),
+           "detections": [d.to_dict() for d in res.detections]}
+    unverified = (res.extras or {}).get("unverified")
+    if unverified:
+        rec["warning"] = (f"{unverified} candidates left unverified (a regular pattern such as a checkerboard "
+                          "or tiles?); --set max_verified=N checks more")
+    return rec
 
 
 # detectors built in this process or thread, by (name, settings): a task builds its detector once per
@@ -187,6 +192,8 @@ def _run_batch(jobs, detector_name, settings, out, parts, workers, skip_bad, pro
             raise CpdetectError(rec["fatal"])
         write_json_atomic(parts / part_name(rec["file"]), {"stamp": stamp, "record": rec}, indent=None)
         done[rec["file"]] = rec
+        if "warning" in rec:
+            log.warning("%s: %s", rec["file"], rec["warning"])
         n_done += 1
         if progress:
             progress(n_done, len(jobs))

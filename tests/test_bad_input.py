@@ -532,3 +532,18 @@ def test_numbers_out_of_range_are_refused_before_anything_is_written(cli, tmp_pa
     res = cli("-q", *args)
     assert_one_line_error(res, words)
     assert not out.exists()
+
+
+def test_an_image_whose_candidates_pass_max_verified_is_detected_with_a_warning(cli, tmp_path):
+    # a checkerboard passes a candidate at every corner; the classical detector verifies at most
+    # max_verified of them (a 12 MP checkerboard took 6.5 s for 3,000) and names the image
+    yy, xx = np.indices((240, 320))
+    board = np.where((yy // 20 + xx // 20) % 2, 220, 30).astype(np.float32)
+    p = tmp_path / "board.png"
+    p.write_bytes(_png_bytes(cv2.GaussianBlur(board, (0, 0), 0.7).astype(np.uint8)))
+    out = tmp_path / "det.json"
+    res = cli("-q", "detect", p, "--set", "max_verified=2", "--out", out)
+    assert res.rc == 0 and len(res.err) == 1 and res.err[0].startswith("WARNING: board.png: ")
+    assert "left unverified" in res.err[0]
+    (im,) = json.loads(out.read_text())["images"]
+    assert im["detections"] == [] and "left unverified" in im["warning"]

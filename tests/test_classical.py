@@ -197,6 +197,19 @@ def test_a_texture_saddle_beside_a_marker_no_longer_takes_it_for_a_checker(monke
     assert [m for m in off if math.hypot(m.x - big[0].x, m.y - big[0].y) < 3] == []
 
 
+def test_verification_stops_at_max_verified_and_says_how_many_it_left():
+    board = checkerboard()
+    full = ClassicalDetector().detect(board)
+    passed = full.extras["prefiltered"]
+    assert passed > 5 and "unverified" not in full.extras
+    capped = ClassicalDetector(max_verified=3).detect(board)
+    assert capped.extras["unverified"] == passed - 3 and capped.detections == []
+    # a marker is verified before the cap binds: coarse levels, then contrast, come first
+    img = cv2.cvtColor(marker_image((150.3, 120.6), 40.0, 0.3, "square", (240, 320)), cv2.COLOR_BGR2GRAY)
+    (m,) = ClassicalDetector(max_verified=1).detect(img).detections
+    assert math.hypot(m.x - 150.3, m.y - 120.6) < 0.1
+
+
 def test_checkerboard_corners_are_not_markers(det):
     assert det.detect(checkerboard()).detections == []
 
