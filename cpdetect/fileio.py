@@ -86,6 +86,8 @@ def read_text_utf8(path: str | os.PathLike, what: str = "file") -> str:
         raise InputError(f"{what} not found", path)
     if path.is_dir():
         raise InputError(f"expected a {what}, found a folder", path)
+    if not path.is_file():  # reading a pipe or a device could block or never end
+        raise InputError(f"expected a {what}, found a device, pipe or socket", path)
     try:
         return path.read_bytes().decode("utf-8")
     except UnicodeDecodeError as exc:

@@ -547,3 +547,23 @@ def test_an_image_whose_candidates_pass_max_verified_is_detected_with_a_warning(
     assert "left unverified" in res.err[0]
     (im,) = json.loads(out.read_text())["images"]
     assert im["detections"] == [] and "left unverified" in im["warning"]
+
+
+@pytest.mark.parametrize("which", ["--detected", "--surveyed"])
+def test_a_pipe_given_as_a_point_file_is_refused_without_reading_it(tmp_path, which):
+    # reading a named pipe blocks until something writes to it: 'register' waited forever. A
+    # subprocess with a timeout, so that a regression fails instead of hanging the suite
+    import os
+
+    pts = tmp_path / "points.csv"
+    pts.write_text("id,x,y,z\n" + "".join(f"P{i},{i},{i * i % 5},{i % 3}\n" for i in range(5)))
+    fifo = tmp_path / "pipe.csv"
+    os.mkfifo(fifo)
+    args = {"--detected": pts, "--surveyed": pts, which: fifo}
+    run_cli = "import sys; from cpdetect.cli import main; sys.exit(main())"
+    r = subprocess.run([sys.executable, "-c", run_cli, "-q", "register", "--detected", str(args["--detected"]),
+                        "--surveyed", str(args["--surveyed"]), "--out", str(tmp_path / "r.json")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        f"cpdetect register: error: {fifo}: expected a CSV file, found a device, pipe or socket"]
+    assert not (tmp_path / "r.json").exists()

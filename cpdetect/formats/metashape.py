@@ -65,7 +65,8 @@ class _XmlDoc:
         if not path.exists():
             raise InputError("Metashape XML file not found", path)
         if not path.is_file():
-            raise InputError("expected a Metashape XML file, found a folder", path)
+            raise InputError("expected a Metashape XML file, found a "
+                             + ("folder" if path.is_dir() else "device, pipe or socket"), path)
         try:
             data = path.read_bytes()
         except OSError as exc:

@@ -54,6 +54,8 @@ def _decode(path: Path) -> str:
         raise InputError("file not found", path)
     if path.is_dir():
         raise InputError("expected a CSV file, found a folder", path)
+    if not path.is_file():  # reading a pipe or a device could block or never end
+        raise InputError("expected a CSV file, found a device, pipe or socket", path)
     try:
         data = path.read_bytes()
     except OSError as exc:
