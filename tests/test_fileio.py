@@ -66,3 +66,12 @@ def test_a_pipe_is_no_output_file_and_is_left_as_it_is(tmp_path):
         with pytest.raises(InputError, match="not a regular file"):
             write_json_atomic(p, {"a": 1})
     assert stat.S_ISFIFO(os.stat(fifo).st_mode) and sorted(x.name for x in tmp_path.iterdir()) == ["out.json", "via_link.json"]
+
+
+def test_a_target_name_of_250_bytes_is_written_and_a_longer_one_is_one_error(tmp_path):
+    # the temporary name repeated the whole target name: 250 bytes + '.xxxxxxxx.part' went over 255
+    long_ok = tmp_path / ("n" * 245 + ".json")
+    write_json_atomic(long_ok, {"a": 1})
+    assert json.loads(long_ok.read_text()) == {"a": 1} and os.listdir(tmp_path) == [long_ok.name]
+    with pytest.raises(InputError, match="cannot write here: File name too long"):
+        write_json_atomic(tmp_path / ("n" * 300 + ".json"), {"a": 1})
