@@ -1,7 +1,19 @@
 """Errors that the command line reports as one line, naming the file (and line) at fault."""
 from __future__ import annotations
 
+import re
 from os import PathLike
+
+# "OpenCV(5.0.0) /path/bitstrm.cpp:59: error: (-2:Unspecified error) Unexpected end of input stream in
+# function 'readBlock'" -> "Unexpected end of input stream"
+_CV_ERROR = re.compile(r"error: \([^)]*\)\s*(.*?)(?: in function .*)?$")
+
+
+def opencv_words(text: str) -> str:
+    """OpenCV's own words in one of its error lines, without its version, source path, error code and
+    function; ``text`` itself when it is no such line."""
+    m = _CV_ERROR.search(text)
+    return m.group(1) if m else text
 
 
 class CpdetectError(Exception):

@@ -13,7 +13,6 @@ detections, its size and its camera model agree.
 from __future__ import annotations
 
 import os
-import re
 import sys
 import tempfile
 import threading
@@ -25,7 +24,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, opencv_words
 
 if TYPE_CHECKING:
     from concurrent.futures import Future
@@ -344,11 +343,6 @@ def _raise_if_damaged(printed: list[str], p: Path) -> None:
 # not decode; libtiff may still return an image whose damaged strips are left blank or garbled (an
 # LZW stream with a wrong code: "Using code not yet in table")
 _DECODE_ERRORS = ("libpng error: ", "TIFF_Error ", "can't read data: ", "readData OpenCV TIFF")
-# "OpenCV(5.0.0) /path/bitstrm.cpp:59: error: (-2:Unspecified error) Unexpected end of input stream in
-# function 'readBlock'" -> "Unexpected end of input stream"
-_CV_ERROR = re.compile(r"error: \([^)]*\) (.*?)(?: in function .*)?$")
-
-
 def _decode_errors(printed: list[str]) -> list[str]:
     """The decoder's own words for each error line among ``printed``; the other non-blank lines are
     passed on to standard error."""
@@ -362,8 +356,7 @@ def _decode_errors(printed: list[str]) -> list[str]:
         words = ln.split(hit, 1)[1].strip(" :")
         if hit == "readData OpenCV TIFF":  # "(line 1234): failed TIFFReadRGBAStrip(tif, y, ...)"
             words = words.split("): ", 1)[-1]
-        cv = _CV_ERROR.search(words)
-        errors.append((cv.group(1) if cv else words) or ln.strip())
+        errors.append(opencv_words(words) or ln.strip())
     _pass_on(rest)
     return errors
 

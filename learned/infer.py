@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import importlib.util
 import os
-import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol, Sequence
@@ -105,7 +104,7 @@ class OpenCVBackend:
     def __init__(self, onnx_path: str | os.PathLike, threads: int | None = None):
         """``threads``: OpenCV threads while the network runs (restored after each pass); None
         leaves OpenCV's own setting (all cores unless the process set otherwise)."""
-        from cpdetect.errors import InputError
+        from cpdetect.errors import InputError, opencv_words
 
         p = Path(onnx_path)
         if not p.is_file():
@@ -116,11 +115,8 @@ class OpenCVBackend:
         try:
             self.net = cv2.dnn.readNetFromONNX(str(p))
         except cv2.error as exc:
-            # OpenCV's text: "OpenCV(5.0.0) /path/to/source.cpp:346: error: (-210:...) Failed to parse
-            # ONNX model: FILE in function 'parseFile'": its words only
-            msg = str(exc).strip().splitlines()[-1]
-            m = re.search(r"error: \(-?\d+:[^)]*\)\s*(.*?)(?: in function '[^']*')?$", msg)
-            why = (m.group(1) if m else msg).replace(str(p), "").rstrip(" :")
+            # its words ("Failed to parse ONNX model: FILE") without the file, named by the error
+            why = opencv_words(str(exc).strip().splitlines()[-1]).replace(str(p), "").rstrip(" :")
             raise InputError(f"OpenCV cannot load the ONNX model: {why}", p) from None
         self.path = p
         self.threads = int(threads) if threads else None
