@@ -321,6 +321,12 @@ class _Levels:
         return v.reshape(np.shape(xs))
 
 
+def _bright_axis(h2: np.ndarray) -> float:
+    """The direction (radians) of the bright sectors' middle from rings' second harmonics ``h2``: the
+    profile ~ cos(2 (theta - ph)), so mean(P exp(-2i theta)) ~ exp(-2i ph)."""
+    return -float(np.angle(h2.sum())) / 2.0
+
+
 REMAP_MAX = 32767  # cv2.remap wants images and maps under this many rows and columns
 REMAP_BLOCK = 16384
 
@@ -851,8 +857,7 @@ class _Verifier:
         """The direction (radians, image frame) of a bright sector's middle on small rings around
         (x, y), as :meth:`is_xcorner` measures it; None where a ring leaves the image."""
         rings = self._small_rings(x, y, r_start)
-        # profile ~ cos(2 (theta - ph)), so mean(P exp(-2i theta)) ~ exp(-2i ph): bright around ph
-        return None if rings is None else -float(np.angle(rings[1].sum())) / 2.0
+        return None if rings is None else _bright_axis(rings[1])
 
     def is_xcorner(self, x: float, y: float, r_start: float, levels: tuple[float, float] | None = None,
                    q_min: float = 0.75, axes: float | None = None) -> bool:
@@ -876,7 +881,7 @@ class _Verifier:
             return True
         D, B = levels
         C = B - D
-        ph = -float(np.angle(h2.sum())) / 2.0
+        ph = _bright_axis(h2)
         if axes is not None:
             turn = (ph - axes + 0.25 * np.pi) % (0.5 * np.pi) - 0.25 * np.pi
             if abs(turn) > math.radians(AXES_TOLERANCE_DEG):

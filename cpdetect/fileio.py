@@ -18,13 +18,14 @@ def output_target(path: str | os.PathLike) -> Path:
     device itself, and writing into a pipe is not atomic."""
     given = Path(path)
     try:
-        target = Path(os.path.realpath(given)) if given.is_symlink() else given
-        target.exists()
+        link = given.is_symlink()
+        target = Path(os.path.realpath(given)) if link else given
+        exists = target.exists()
     except OSError as exc:  # e.g. a name over 255 bytes
         raise InputError(f"cannot write here: {exc.strerror or exc}", given) from None
-    if target.exists() and not target.is_file() and not target.is_dir():
+    if exists and not target.is_file() and not target.is_dir():
         raise InputError("not a regular file (a device, pipe or socket); outputs are written to files", given)
-    if given.is_symlink() and not target.exists() and not target.parent.is_dir():
+    if link and not exists and not target.parent.is_dir():
         raise InputError(f"a link to {target}, which cannot be created", given)
     return target
 
