@@ -112,6 +112,11 @@ def default_window(radius_px: float) -> float:
     return float(np.clip(0.5 * radius_px, 2.5, 40.0))
 
 
+def default_shift(radius_px: float) -> float:
+    """How far (pixels) a refinement may move from its seed unless told: max(2, 0.35 radius)."""
+    return max(2.0, 0.35 * radius_px)
+
+
 class _Patch:
     """A float32 copy of the image around a point, with its origin (x of column 0, y of row 0)."""
 
@@ -146,7 +151,7 @@ def refine_saddle(gray: np.ndarray, x0: float, y0: float, radius_px: float, wind
 
     gray = _check_inputs(gray, x0, y0, radius_px)
     w = float(window_px) if window_px is not None else default_window(radius_px)
-    max_shift = float(max_shift_px) if max_shift_px is not None else max(2.0, 0.35 * radius_px)
+    max_shift = float(max_shift_px) if max_shift_px is not None else default_shift(radius_px)
     # the quadratic model of an X-corner holds within about one blur scale of its centre
     sb = max(0.8, 0.5 * w)
     half = int(math.ceil(w + max_shift + 3 * sb + 2))
@@ -268,7 +273,7 @@ def refine_symmetry(gray: np.ndarray, x0: float, y0: float, radius_px: float, wi
 
     gray = _check_inputs(gray, x0, y0, radius_px)
     w = float(window_px) if window_px is not None else default_window(radius_px)
-    max_shift = float(max_shift_px) if max_shift_px is not None else max(2.0, 0.35 * radius_px)
+    max_shift = float(max_shift_px) if max_shift_px is not None else default_shift(radius_px)
     ss = _symmetry_smoothing(w)
     half = int(math.ceil(w + max_shift + 3 * ss + 3))
     patch = _Patch(gray, x0, y0, half)
@@ -613,7 +618,7 @@ def refine_hough(gray: np.ndarray, x0: float, y0: float, radius_px: float, windo
     import cv2
 
     gray = _check_inputs(gray, x0, y0, radius_px)
-    max_shift = float(max_shift_px) if max_shift_px is not None else max(2.0, 0.35 * radius_px)
+    max_shift = float(max_shift_px) if max_shift_px is not None else default_shift(radius_px)
     # lines need length: use most of the pattern, but stay inside it
     R = float(window_px) * 1.4 if window_px is not None else float(np.clip(0.7 * radius_px, 5.0, 80.0))
     half = int(math.ceil(R + max_shift + 2))
@@ -701,8 +706,10 @@ def _unless_lines_do_better(gray: np.ndarray, sym: RefineResult, x0: float, y0: 
     # checker model, fitted from it again and again (each fit weighs the pixels by their mirror
     # images through its seed, so a seed a pixel off holds it back), settles near it
     model = _settled_model(gray, hough.x, hough.y, radius_px)
+    shift = kw.get("max_shift_px")
+    shift = float(shift) if shift is not None else default_shift(radius_px)
     if model is not None and math.hypot(model.x - hough.x, model.y - hough.y) <= MODEL_SETTLE_REACH_PX \
-            and model.sigma_px < 0.5 * sym.sigma_px:
+            and math.hypot(model.x - x0, model.y - y0) <= shift and model.sigma_px < 0.5 * sym.sigma_px:
         return model
     return sym
 
@@ -761,7 +768,7 @@ def refine_center(gray: np.ndarray, x0: float, y0: float, radius_px: float, meth
     # the saddle seed only needs the X-corner's core: a small window keeps it cheap on big markers
     sad = refine_saddle(gray, x0, y0, radius_px, window_px=min(w, 6.0), max_shift_px=max_shift_px)
     seed = (sad.x, sad.y) if sad.ok else (x0, y0)
-    shift = max_shift_px if max_shift_px is not None else max(2.0, 0.35 * radius_px)
+    shift = max_shift_px if max_shift_px is not None else default_shift(radius_px)
     # the window that fits best: a full one uses most signal, but an occluder, the image border or a
     # strong tilt spoil large windows first, and the fit's sigma says which held (on 2,461 detector
     # seeds near occluders and image borders, dev and train-split sets: mean error 0.078 -> 0.054 px,
@@ -888,7 +895,7 @@ def refine_center_coarse_to_fine(gray: np.ndarray, x0: float, y0: float, radius_
     import cv2
 
     gray = _check_inputs(gray, x0, y0, radius_px)
-    shift = float(max_shift_px) if max_shift_px is not None else max(2.0, 0.35 * radius_px)
+    shift = float(max_shift_px) if max_shift_px is not None else default_shift(radius_px)
     f = 1
     while 2 * f <= shift / 8.0 and radius_px / (2 * f) >= 8.0:
         f *= 2

@@ -155,6 +155,25 @@ def test_lines_far_from_an_unsure_symmetry_fit_win_where_the_checker_model_confi
     assert res.sigma_px < 0.05
 
 
+def test_lines_confirmed_by_the_model_still_keep_to_the_allowed_shift(monkeypatch):
+    import cpdetect.refine as refine
+    from cpdetect.refine import RefineResult
+
+    # the model settles up to 2 px from the lines' crossing, which itself lies within the shift:
+    # a centre beyond the caller's max_shift_px is not returned (the symmetry fit's is)
+    img, c, r = _cornered("square", 18.0, 1.1, 8.0, 2.0, 0.75, 94.0, 0.5)
+    seed = (c[0] - 2.3, c[1] + 2.8)
+    monkeypatch.setattr(refine, "refine_hough", lambda *a, **k: RefineResult(seed[0] + 2.9, seed[1], 0.01, "hough", True))
+    far = RefineResult(seed[0] + 4.4, seed[1], 0.01, "model", True)
+    monkeypatch.setattr(refine, "_settled_model", lambda *a, **k: far)
+    res = refine_center(img, seed[0], seed[1], r, max_shift_px=3.0)
+    assert res.ok and res.method == "symmetry" and res.sigma_px > 0.15
+    assert np.hypot(res.x - seed[0], res.y - seed[1]) <= 3.0
+    near = RefineResult(seed[0] + 2.5, seed[1] + 0.3, 0.01, "model", True)
+    monkeypatch.setattr(refine, "_settled_model", lambda *a, **k: near)
+    assert refine_center(img, seed[0], seed[1], r, max_shift_px=3.0) == near
+
+
 def test_centre_near_the_image_border():
     # centre 4 px above the bottom edge: the pairs of the full window leave the image, and a fit on
     # a smoothing that mirrors at the border is pulled toward it
