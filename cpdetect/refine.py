@@ -54,7 +54,7 @@ Methods (``method=``):
     several pixels off: on the 480 such analytic markers of bench/refine_bench.py, seeds up to 3 px
     off, mean error 0.520 -> 0.290 px, p95 5.06 -> 0.79 px (cv2.cornerSubPix 0.448 / 1.51). On the
     train-split dev sets the classical detector's markers are the same, one of them 3.8 -> 0.06 px
-    off; hma found 2 markers more on dev909, its centre mean 0.060 / 0.060 -> 0.059 / 0.060 px.
+    off; hma found 1 marker more on dev909, its centre mean 0.060 / 0.060 -> 0.059 / 0.060 px.
 
 The window is always derived from the marker's apparent radius (``radius_px``; a fraction of it,
 clamped), never fixed: a fixed window either straddles the marker boundary on small markers or
