@@ -689,12 +689,13 @@ def refine_hough(gray: np.ndarray, x0: float, y0: float, radius_px: float, windo
 
 
 def _unless_lines_do_better(gray: np.ndarray, sym: RefineResult, x0: float, y0: float, radius_px: float,
-                            kw: dict) -> RefineResult:
+                            kw: dict, shift: float) -> RefineResult:
     """The symmetry fit, or the Hough-line fit where the window is clearly not point symmetric (sigma
     over 0.15 px: a shadow edge or an occluder across the centre breaks the symmetry everywhere,
     while the boundary lines stay straight) and the lines agree with it within 1 px at a sigma under
     half of its; lines crossing farther off count only through :func:`_settled_model` from their
-    crossing (within MODEL_SETTLE_REACH_PX of it, at a sigma under half of the symmetry fit's)."""
+    crossing (within MODEL_SETTLE_REACH_PX of it and ``shift`` px of the seed (x0, y0), at a sigma
+    under half of the symmetry fit's)."""
     if sym.sigma_px <= 0.15:
         return sym
     hough = refine_hough(gray, x0, y0, radius_px, **kw)
@@ -706,8 +707,6 @@ def _unless_lines_do_better(gray: np.ndarray, sym: RefineResult, x0: float, y0: 
     # checker model, fitted from it again and again (each fit weighs the pixels by their mirror
     # images through its seed, so a seed a pixel off holds it back), settles near it
     model = _settled_model(gray, hough.x, hough.y, radius_px)
-    shift = kw.get("max_shift_px")
-    shift = float(shift) if shift is not None else default_shift(radius_px)
     if model is not None and math.hypot(model.x - hough.x, model.y - hough.y) <= MODEL_SETTLE_REACH_PX \
             and math.hypot(model.x - x0, model.y - y0) <= shift and model.sigma_px < 0.5 * sym.sigma_px:
         return model
@@ -786,7 +785,7 @@ def refine_center(gray: np.ndarray, x0: float, y0: float, radius_px: float, meth
                                         shape_hint=shape_hint))
     held = [f for f in fits if f.ok and np.hypot(f.x - x0, f.y - y0) <= shift]
     if held:
-        return _unless_lines_do_better(gray, min(held, key=lambda f: f.sigma_px), x0, y0, radius_px, kw)
+        return _unless_lines_do_better(gray, min(held, key=lambda f: f.sigma_px), x0, y0, radius_px, kw, shift)
     # fall-backs are less robust: keep them only close to the seed
     others = [r for r in (sad, refine_hough(gray, x0, y0, radius_px, **kw))
               if r.ok and np.hypot(r.x - x0, r.y - y0) <= 0.5 * shift]
