@@ -224,6 +224,25 @@ def test_grout_and_mullion_crosses_are_not_markers(det):
     assert det.detect(img.astype(np.uint8)).detections == []
 
 
+@pytest.mark.parametrize("angle", [0.0, 0.3])
+def test_two_bright_bits_in_a_tags_corner_are_not_a_marker(det, angle):
+    # a 5 x 5-bit tag whose only bright bits are two cells touching at a corner next to its black
+    # border: a square marker's pattern in a dark field all around, but its white quiet zone lies one
+    # cell beyond the border
+    cell, n = 16, 5
+    tag = np.full(((n + 4) * cell,) * 2, 225.0, np.float32)  # quiet zone
+    tag[cell:-cell, cell:-cell] = 25.0  # black border and dark bits
+    for i, j in [(0, 1), (1, 0)]:
+        tag[(i + 2) * cell:(i + 3) * cell, (j + 2) * cell:(j + 3) * cell] = 225.0
+    img = np.full((240, 320), 140.0, np.float32)
+    rot = cv2.getRotationMatrix2D((tag.shape[1] / 2, tag.shape[0] / 2), np.degrees(angle), 1.0)
+    rot[:, 2] += (160 - tag.shape[1] / 2, 120 - tag.shape[0] / 2)
+    img = cv2.warpAffine(tag, rot, (320, 240), borderMode=cv2.BORDER_CONSTANT, borderValue=140.0,
+                         flags=cv2.INTER_AREA)
+    img = cv2.GaussianBlur(img, (0, 0), 0.7) + np.random.default_rng(3).normal(0, 1.5, img.shape)
+    assert det.detect(np.clip(img + 0.5, 0, 255).astype(np.uint8)).detections == []
+
+
 def test_text_and_edges_are_not_markers(det):
     img = np.full((240, 320), 200, np.uint8)
     cv2.putText(img, "X+ K4 TX", (10, 120), cv2.FONT_HERSHEY_SIMPLEX, 2.0, 20, 6)
@@ -878,10 +897,12 @@ def test_outline_from_the_checker_lines_is_typed_by_the_trees():
     assert abs(near[0].radius_px / t.radius_px - 1.0) < 0.1
 
 
-@pytest.mark.parametrize("marker_type", ["circle", "diagonal"])
+@pytest.mark.parametrize("marker_type", ["circle", "diagonal", "square"])
 def test_marker_without_margin_on_a_wall_of_its_dark_level(det, marker_type):
     # its dark sectors merge with the wall: the bright ones lie in a dark field all around, as a tag's
-    # bright bit cells do; but bit cells are squares, and quarter discs or triangles are not
+    # bright bit cells do; but bit cells are squares, and quarter discs or triangles are not, and a
+    # tag's quiet zone or other bits lie within two cells, where the wall stays dark (the square was
+    # rejected as a tag's bits before 2026-11-27)
     from cpdetect.markers import frontal_homography
 
     center, angle, radius, shape = (131.4, 108.7), 0.4, 28.0, (230, 260)
