@@ -104,6 +104,37 @@ def test_the_ranker_chooses_the_blob_centre():
     assert no_model.centre_ranker is None
 
 
+def test_the_search_goes_on_past_a_candidate_the_marker_model_barely_fits(monkeypatch):
+    import cpdetect.classical as C
+
+    img, mask, _ = rendered("square", center=(121.3, 133.6), radius=26.0, angle=0.5)
+    n = len(INSTANCE_FEATURES)
+    keep_all = InstanceModel(mean=(0.0,) * n, std=(1.0,) * n, weights=(0.0,) * n, bias=5.0, threshold=0.5)
+    soft = mask.astype(np.float32) * 0.97
+    sure = _ranker(sym180=3.0, sym90=-3.0, blob_sym=3.0)
+
+    def options(**settings):
+        det = HMADetector.with_backend(SoftBackend(soft), keep_all, sure, scales=(1.0,), **settings)
+        pm = det.probability(img)
+        (blob,), _ = det.candidates(img, pm.prob, pm.factor)
+        return blob.options
+
+    # the model fits the centroid's refinement (score near 1): the search stops there either way
+    assert len(options(rank_stop_model=0.0)) == 1 and len(options(rank_stop_model=0.5)) == 1
+    assert options(rank_stop_model=0.5)[0][0].model_score > 0.9
+    # where it barely fits (as at an occluder's corner), only rank_stop_model lets the search go on
+    real = C.verify_marker_at
+
+    def weak(*a, **k):
+        v = real(*a, **k)
+        return None if v is None else (v[0], v[1], 0.05) + tuple(v[3:])
+
+    monkeypatch.setattr(C, "verify_marker_at", weak)
+    assert len(options(rank_stop_model=0.0)) == 1
+    assert len(options(rank_stop_model=0.5)) >= 2
+    assert all(o[0].model_score == 0.05 for o in options(rank_stop_model=0.5) if o[0].kind == "verified")
+
+
 def test_the_most_point_symmetric_seeds_are_refined_first():
     from learned.adapter import _most_symmetric
 
@@ -129,6 +160,8 @@ def test_ranker_settings_are_checked():
         get_detector("hma", centre_ranker="best")
     with pytest.raises(UsageError, match="rank_stop"):
         get_detector("hma", rank_stop=0.0)
+    with pytest.raises(UsageError, match="rank_stop_model"):
+        get_detector("hma", rank_stop_model=1.5)
     with pytest.raises(UsageError, match="rank_seeds"):
         get_detector("hma", rank_seeds=-1)
     with pytest.raises(UsageError, match="seed_pool"):
