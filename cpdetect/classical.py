@@ -730,6 +730,16 @@ class _Verifier:
         ys = y + radii[:, None] * self.sin[None, :]
         return self.levels.sample(xs, ys, np.asarray(spacing, float)[:, None])
 
+    def _far_bright(self, x: float, y: float, dist: np.ndarray, V_far: np.ndarray, B: float, C: float) -> float:
+        """The share of bright samples (over the bright level less 0.3 of the contrast) on the rings
+        ``V_far`` (already sampled at 2 and 2.5 outline distances ``dist`` per ray) and at 3; 1 when
+        none of them lies in the image."""
+        r3 = self.levels.sample(x + 3.0 * dist * self.cos, y + 3.0 * dist * self.sin,
+                                np.maximum(dist * 0.087, 1.0))
+        far = np.concatenate([V_far.ravel(), r3.ravel()])
+        far = far[np.isfinite(far)]
+        return float(np.mean(far > B - 0.3 * C)) if far.size else 1.0
+
     def prefilter(self, xy: np.ndarray, r_start: np.ndarray, q_min: float = 0.75, chat: np.ndarray | None = None,
                   level: np.ndarray | None = None) -> np.ndarray:
         """Vectorised first look at many candidates (n, 2) full-res: the fixed tests of
@@ -1484,13 +1494,13 @@ class _Verifier:
                 return "checker continues beyond the outline (checkerboard or tag)"
         if fill < 0.75 and self.strict_tests:
             return "sectors not solid out to the outline"
-        # a tag's bit cells lie within two cells of its white quiet zone or of other bright bits, so
-        # its far rings (2 and 2.5 outline distances) show bright; a square marker without margin on
-        # a dark wall is dark out there too (train-split dev808 / dev909 / dev1111 / dev1212: the 4
-        # markers this test had rejected show no bright far sample, the 3 tags it rejects 42-67 %)
-        far = V[4:][np.isfinite(V[4:])]
-        far_bright = float(np.mean(far > B - 0.3 * C)) if far.size else 1.0
-        if dark_surround > 0.85 and mtype == "square" and far_bright > self.TAG_FAR_BRIGHT:
+        # a tag's bit cells lie within a few cells of its white quiet zone or of other bright bits,
+        # so its far rings (2, 2.5 and 3 outline distances) show bright; a square marker without
+        # margin on a dark wall is dark out there too (train-split dev808 / dev909 / dev1111 /
+        # dev1212: the 4 markers this test had rejected show 0-5 % bright far samples, the 3 tags it
+        # rejects 43-66 %; the ring at 3 is for a tag whose two bright bits lie mid-tag, where the
+        # next bright bits or the quiet zone are 2.5-4 cells away)
+        if dark_surround > 0.85 and mtype == "square" and self._far_bright(x, y, dist, V[4:], B, C) > self.TAG_FAR_BRIGHT:
             return "dark field all around (a tag's bit cells)"
         return dict(inverted=inverted, alternations=alt_max, outer_mixed=mixed, fill=fill, alt_far=alt_far,
                     dark_surround=dark_surround)

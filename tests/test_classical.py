@@ -228,7 +228,8 @@ def test_grout_and_mullion_crosses_are_not_markers(det):
 def test_two_bright_bits_in_a_tags_corner_are_not_a_marker(det, angle):
     # a 5 x 5-bit tag whose only bright bits are two cells touching at a corner next to its black
     # border: a square marker's pattern in a dark field all around, but its white quiet zone lies one
-    # cell beyond the border
+    # cell beyond the border. (Two such bits mid-tag with no other bright bit within two cells look
+    # exactly like a square marker without margin on a dark wall, and are taken for one.)
     cell, n = 16, 5
     tag = np.full(((n + 4) * cell,) * 2, 225.0, np.float32)  # quiet zone
     tag[cell:-cell, cell:-cell] = 25.0  # black border and dark bits
