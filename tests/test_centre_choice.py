@@ -135,6 +135,27 @@ def test_the_search_goes_on_past_a_candidate_the_marker_model_barely_fits(monkey
     assert all(o[0].model_score == 0.05 for o in options(rank_stop_model=0.5) if o[0].kind == "verified")
 
 
+@pytest.mark.parametrize("sym180, setting, kept", [(0.05, 0.1, False), (0.5, 0.1, True), (0.05, -1.0, True)])
+def test_an_unverified_centre_must_be_point_symmetric(monkeypatch, sym180, setting, kept):
+    # a blob whose centre the marker model does not fit and about which the image is not
+    # point-symmetric is no marker (an occluder's corner beside a covered centre); as if so measured
+    import cpdetect.classical as C
+    import learned.centre_choice as CC
+
+    img, mask, _ = rendered("square", center=(121.3, 133.6), radius=26.0, angle=0.5)
+    n = len(INSTANCE_FEATURES)
+    keep_all = InstanceModel(mean=(0.0,) * n, std=(1.0,) * n, weights=(0.0,) * n, bias=5.0, threshold=0.5)
+    monkeypatch.setattr(C, "verify_marker_at", lambda *a, **k: None)
+    monkeypatch.setattr(CC, "point_symmetry", lambda *a, **k: (sym180, -0.5))
+    det = HMADetector.with_backend(SoftBackend(mask.astype(np.float32) * 0.97), keep_all,
+                                   _ranker(sym180=3.0, sym90=-3.0, blob_sym=3.0), scales=(1.0,),
+                                   min_sym180_unverified=setting)
+    found = det.detect(img).detections
+    assert len(found) == (1 if kept else 0)
+    if kept:
+        assert math.hypot(found[0].x - 121.3, found[0].y - 133.6) < 0.15
+
+
 def test_the_most_point_symmetric_seeds_are_refined_first():
     from learned.adapter import _most_symmetric
 
@@ -160,6 +181,8 @@ def test_ranker_settings_are_checked():
         get_detector("hma", centre_ranker="best")
     with pytest.raises(UsageError, match="rank_stop"):
         get_detector("hma", rank_stop=0.0)
+    with pytest.raises(UsageError, match="min_sym180_unverified"):
+        get_detector("hma", min_sym180_unverified=2.0)
     with pytest.raises(UsageError, match="rank_stop_model"):
         get_detector("hma", rank_stop_model=1.5)
     with pytest.raises(UsageError, match="rank_seeds"):
