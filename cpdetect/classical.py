@@ -1500,7 +1500,8 @@ class _Verifier:
         # dev1212: the 4 markers this test had rejected show 0-5 % bright far samples, the 3 tags it
         # rejects 43-66 %; the ring at 3 is for a tag whose two bright bits lie mid-tag, where the
         # next bright bits or the quiet zone are 2.5-4 cells away)
-        if dark_surround > 0.85 and mtype == "square" and self._far_bright(x, y, dist, V[4:], B, C) > self.TAG_FAR_BRIGHT:
+        if dark_surround > 0.85 and mtype == "square" \
+                and self._far_bright(x, y, dist, V[4:], B, C) > self.TAG_FAR_BRIGHT:
             return "dark field all around (a tag's bit cells)"
         return dict(inverted=inverted, alternations=alt_max, outer_mixed=mixed, fill=fill, alt_far=alt_far,
                     dark_surround=dark_surround)

@@ -161,8 +161,9 @@ class HMASettings:
     (``sym180`` of :func:`learned.centre_choice.point_symmetry` below this; a checker centre gives
     about 0.9): nothing says a checker's centre is there. On the all-covered train-split set occ77
     (200 images) 0.1 drops 2 of 12 false markers and 2 markers placed 0.75 and 1.4 px off, none
-    better placed; on dev1111 (400 images) nothing (its unverified centres have sym180 0.45 or more
-    in 95 %). -1 keeps every one (the rule before 2026-11-27).
+    better placed; dev808 1 false marker fewer; dev1212 1 marker fewer (0.29 px off); dev909 and
+    dev1111 (its unverified centres have sym180 0.45 or more in 95 %) unchanged. -1 keeps every one
+    (the rule before 2026-11-27).
     classical_seeds: also run the classical detector on the image (13-32 % more time on 640x480
     sets); its markers that lie on a blob are tried first among the X-corner seeds, and a blob whose
     centre one of them confirms is kept whatever the instance model says. The blobs stay the
