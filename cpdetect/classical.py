@@ -730,13 +730,18 @@ class _Verifier:
         ys = y + radii[:, None] * self.sin[None, :]
         return self.levels.sample(xs, ys, np.asarray(spacing, float)[:, None])
 
+    def outline_rings(self, x: float, y: float, fracs: np.ndarray, dist: np.ndarray) -> np.ndarray:
+        """(len(fracs), N_THETA) samples around (x, y) at ``fracs`` times each ray's outline distance
+        ``dist`` (N_THETA,), each at a spacing of 0.087 of that distance (at least 1 px); NaN outside."""
+        xs = x + fracs[:, None] * dist[None, :] * self.cos[None, :]
+        ys = y + fracs[:, None] * dist[None, :] * self.sin[None, :]
+        return self.levels.sample(xs, ys, np.maximum(dist[None, :] * 0.087, 1.0) * np.ones_like(xs))
+
     def _far_bright(self, x: float, y: float, dist: np.ndarray, V_far: np.ndarray, B: float, C: float) -> float:
         """The share of bright samples (over the bright level less 0.3 of the contrast) on the rings
         ``V_far`` (already sampled at 2 and 2.5 outline distances ``dist`` per ray) and at 3; 1 when
         none of them lies in the image."""
-        r3 = self.levels.sample(x + 3.0 * dist * self.cos, y + 3.0 * dist * self.sin,
-                                np.maximum(dist * 0.087, 1.0))
-        far = np.concatenate([V_far.ravel(), r3.ravel()])
+        far = np.concatenate([V_far.ravel(), self.outline_rings(x, y, np.array([3.0]), dist).ravel()])
         far = far[np.isfinite(far)]
         return float(np.mean(far > B - 0.3 * C)) if far.size else 1.0
 
@@ -1430,17 +1435,12 @@ class _Verifier:
         # inside: a marker's sectors are solid out to the outline (the pixels of a tag's bit pattern
         # around an X-corner of its bits are not)
         fr = np.array([0.35, 0.5, 0.65, 0.8])
-        Vi = self.levels.sample(x + fr[:, None] * dist[None, :] * self.cos[None, :],
-                                y + fr[:, None] * dist[None, :] * self.sin[None, :],
-                                np.maximum(dist[None, :] * 0.087, 1.0) * np.ones((len(fr), self.N_THETA)))[:, mid_ray]
+        Vi = self.outline_rings(x, y, fr, dist)[:, mid_ray]
         fin = np.isfinite(Vi)
         fill = float(np.mean((Vi[fin] > 0.5 * (D + B)) == np.broadcast_to(bright_ray[mid_ray], Vi.shape)[fin])) \
             if fin.any() else 0.0
         self.last_fill = fill
-        radii = np.array([1.12, 1.25, 1.35, 1.6, 2.0, 2.5])
-        xs = x + radii[:, None] * dist[None, :] * self.cos[None, :]
-        ys = y + radii[:, None] * dist[None, :] * self.sin[None, :]
-        V = self.levels.sample(xs, ys, np.maximum(dist[None, :] * 0.087, 1.0) * np.ones_like(xs))
+        V = self.outline_rings(x, y, np.array([1.12, 1.25, 1.35, 1.6, 2.0, 2.5]), dist)
         inverted, alt_max, mixed, alt_far = 0.0, 0.0, 0.0, 0.0
         # all around at the dark sectors' own level: bright cells inside a dark field (a tag's bits);
         # a marker's printed margin is white, and a dark wall is rarely the ink's level all around

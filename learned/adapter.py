@@ -606,6 +606,7 @@ class HMADetector:
                         # the classical detector's own verification stands beside the model's
                         keep = score >= cut or b.centre.classical
                     cx, cy, sigma, mtype = b.centre.x, b.centre.y, b.centre.sigma, b.centre.type
+                    # sym180 is measured only for the ranker's candidates (the rules leave it 0)
                     if keep and self.centre_ranker is not None and b.centre.kind != "verified" \
                             and not b.centre.classical and b.centre.sym180 < s.min_sym180_unverified:
                         keep = False
