@@ -70,10 +70,15 @@ def _ranker(**weights) -> CentreRanker:
                         bias=0.0, features=CANDIDATE_FEATURES)
 
 
+def _keep_all() -> InstanceModel:
+    """An instance model that keeps every blob (P about 0.99 whatever its features)."""
+    n = len(INSTANCE_FEATURES)
+    return InstanceModel(mean=(0.0,) * n, std=(1.0,) * n, weights=(0.0,) * n, bias=5.0, threshold=0.5)
+
+
 def test_the_ranker_chooses_the_blob_centre():
     img, mask, _ = rendered("square", center=(121.3, 133.6), radius=26.0, angle=0.5)
-    n = len(INSTANCE_FEATURES)
-    keep_all = InstanceModel(mean=(0.0,) * n, std=(1.0,) * n, weights=(0.0,) * n, bias=5.0, threshold=0.5)
+    keep_all = _keep_all()
     soft = mask.astype(np.float32) * 0.97
     chosen = {}
     for name, ranker in (("symmetry", _ranker(sym180=3.0, sym90=-3.0, blob_sym=3.0)), ("far", _ranker(offset=5.0))):
@@ -108,8 +113,7 @@ def test_the_search_goes_on_past_a_candidate_the_marker_model_barely_fits(monkey
     import cpdetect.classical as C
 
     img, mask, _ = rendered("square", center=(121.3, 133.6), radius=26.0, angle=0.5)
-    n = len(INSTANCE_FEATURES)
-    keep_all = InstanceModel(mean=(0.0,) * n, std=(1.0,) * n, weights=(0.0,) * n, bias=5.0, threshold=0.5)
+    keep_all = _keep_all()
     soft = mask.astype(np.float32) * 0.97
     sure = _ranker(sym180=3.0, sym90=-3.0, blob_sym=3.0)
 
@@ -143,8 +147,7 @@ def test_an_unverified_centre_must_be_point_symmetric(monkeypatch, sym180, setti
     import learned.centre_choice as CC
 
     img, mask, _ = rendered("square", center=(121.3, 133.6), radius=26.0, angle=0.5)
-    n = len(INSTANCE_FEATURES)
-    keep_all = InstanceModel(mean=(0.0,) * n, std=(1.0,) * n, weights=(0.0,) * n, bias=5.0, threshold=0.5)
+    keep_all = _keep_all()
     monkeypatch.setattr(C, "verify_marker_at", lambda *a, **k: None)
     monkeypatch.setattr(CC, "point_symmetry", lambda *a, **k: (sym180, -0.5))
     det = HMADetector.with_backend(SoftBackend(mask.astype(np.float32) * 0.97), keep_all,
