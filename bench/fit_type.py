@@ -12,6 +12,13 @@ the accuracy on those folders, each against the residual rule (``type_trees=Fals
     # the datasets and the row cache are bench/fit_score.py's (see its docstring)
     .venv/bin/python bench/fit_type.py --data train606 --data fit11 --data sc707 \
         --check dev505 --check dev808 --check dev909 --cache rows
+
+Tried on 2026-11-27, not kept: twice the images (bench/fit_score.py's docstring: 12,900 images,
+24,980 candidates on markers). 5-fold accuracy 0.9770 on the 6,900 images (rows of today's
+detector), 0.9781 on the 12,900. On the ten train-split dev sets named there (6,338 candidates on
+markers), wrong types: shipped 129; refitted on the same 6,900 images 137, on the 12,900 134. Other
+tree settings on the 12,900 images (depth 4-6, 300-800 trees): 5-fold 0.9780-0.9788, 130-137 wrong.
+Neither more data nor other settings lowers it.
 """
 from __future__ import annotations
 
