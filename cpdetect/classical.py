@@ -45,8 +45,7 @@ Pipeline for one image:
    of its grey levels, about as strong, lies 0.4-1.7 radii away (the single-saddle test); since
    2026-11-27 only one whose sector edges run along the centre's, as on one checker's grid, or a
    marker found already (``saddle_axes``: a saddle of the wall's texture at another angle had
-   refused 4 true markers on the train-split dev sets); not for a marker typed circle, whose round
-   outline no checker continues (``saddle_test_circles``).
+   refused 4 true markers on the train-split dev sets).
 4. **Type** in the frame of the checker lines (:func:`type_residuals`): a sector's boundary points,
    divided by the outline's extents along its two bounding lines, lie on the unit L1 ball for a
    diagonal, L2 for a circle, L-infinity for a square, in any affine view (train-split sets: type
@@ -193,13 +192,6 @@ class ClassicalSettings:
         dev1212) the 23 neighbours that test found beside non-markers turned 0-8.8 degrees from their
         centre's axes, the 26 beside true markers (wall texture, outline junctions) 0.3-44.8; with it,
         4 more markers of 2,714 and no more false ones (20 degrees: 3, 30: 1).
-    saddle_test_circles: apply the single-saddle test to markers typed circle too (as before
-        2026-11-27). A circle's round outline ends its checker lines, so no checkerboard or tag
-        continues its pattern; the X-corners the test finds beside a circle are junctions of its
-        sector edges with a dark textured background or with a false marker on its outline. On ten
-        train-split dev sets (3,000 images) the test refused 49 verified candidates on no marker,
-        every one typed square or diagonal, and candidates on 3 circles found no other way;
-        exempting circles found those 3 (centres 0.015-0.045 px off) and changed nothing else.
     """
 
     min_radius_px: float = 8.0
@@ -219,7 +211,6 @@ class ClassicalSettings:
     type_trees: bool = True
     retry_score: float = 0.2
     saddle_axes: bool = True
-    saddle_test_circles: bool = False
     max_verified: int = 1000
 
     def __post_init__(self) -> None:
@@ -1755,17 +1746,14 @@ class _Scan:
             # (checkerboards, tag bit cells); the junctions where a marker's pattern meets its margin,
             # an occluder or the background are weaker (dev sets: at 0.5 of the contrast instead of
             # 0.9, 9 true markers of 733 were lost for 4 false ones)
-            # (not for circles, whose outline no checker continues: ClassicalSettings.saddle_test_circles)
-            single_saddle = v.type != "circle" or s.saddle_test_circles
             dn = np.hypot(cand_xy[:, 0] - v.x, cand_xy[:, 1] - v.y)
-            near = np.nonzero(single_saddle & (dn > 0.4 * v.radius) & (dn < 1.7 * v.radius)
+            near = np.nonzero((dn > 0.4 * v.radius) & (dn < 1.7 * v.radius)
                               & (cand_c >= 0.9 * c.contrast) & (cand_scale <= 0.25 * v.radius))[0]
             r_small = max(1.5, 0.15 * v.radius)
             axes = verifier.xcorner_axes(v.x, v.y, r_small) if s.saddle_axes and near.size else None
             # a marker found already is an X-corner of those levels whatever its axes: from a junction
             # of its sector edges with its outline (three regions) its centre shows as a neighbour
-            found = [a for a, _ in accepted
-                     if single_saddle and 0.4 * v.radius < math.hypot(a.x - v.x, a.y - v.y) < 1.7 * v.radius]
+            found = [a for a, _ in accepted if 0.4 * v.radius < math.hypot(a.x - v.x, a.y - v.y) < 1.7 * v.radius]
             if any(verifier.is_xcorner(cand_xy[j, 0], cand_xy[j, 1], r_small, v.levels, axes=axes)
                    for j in near[np.argsort(-cand_c[near])][:8]) \
                     or any(verifier.is_xcorner(a.x, a.y, r_small, v.levels) for a in found):

@@ -193,9 +193,7 @@ def test_a_texture_saddle_beside_a_marker_no_longer_takes_it_for_a_checker(monke
     near = [m for m in ClassicalDetector().detect(img).detections if math.hypot(m.x - big[0].x, m.y - big[0].y) < 3]
     assert len(near) == 1 and near[0].type == "circle"
     assert math.hypot(near[0].x - big[0].x, near[0].y - big[0].y) < 0.1
-    # (circles skip the test since 2026-11-27, see
-    # test_a_circle_whose_outline_meets_a_dark_wall_is_not_taken_for_a_checker; here it is asked for)
-    off = ClassicalDetector(saddle_axes=False, saddle_test_circles=True).detect(img).detections
+    off = ClassicalDetector(saddle_axes=False).detect(img).detections
     assert [m for m in off if math.hypot(m.x - big[0].x, m.y - big[0].y) < 3] == []
 
 
@@ -822,20 +820,6 @@ def generated_photo(index: int, seed: int):
     sample = generate_image(index, seed, SynthImageOptions(split="train"), BackgroundLibrary(list_backgrounds("train")))
     jpeg = _encode(sample.image, "jpg", sample.jpeg_quality)
     return cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR), sample.markers
-
-
-def test_a_circle_whose_outline_meets_a_dark_wall_is_not_taken_for_a_checker():
-    # image 211 of the train-split set of seed 1515: a circle (radius 71 px) on a wall of dark stones.
-    # Where its sector edges meet the wall, junctions of its grey levels look like X-corners of one
-    # checker, and the single-saddle test refused it; no checker continues a circle's round outline
-    img, markers = generated_photo(211, 1515)
-    big = [m for m in markers if m.type == "circle" and m.radius_px > 60]
-    assert len(big) == 1
-    near = [m for m in ClassicalDetector().detect(img).detections if math.hypot(m.x - big[0].x, m.y - big[0].y) < 3]
-    assert len(near) == 1 and near[0].type == "circle"
-    assert math.hypot(near[0].x - big[0].x, near[0].y - big[0].y) < 0.1
-    tested = ClassicalDetector(saddle_test_circles=True).detect(img).detections
-    assert [m for m in tested if math.hypot(m.x - big[0].x, m.y - big[0].y) < 3] == []
 
 
 def test_markers_in_an_image_wider_than_remap_allows_are_found_across_its_blocks():
