@@ -40,7 +40,7 @@ false candidates, against 378 / 564 / 538 with 7 / 1 / 10 without them: no gain.
 Tried on 2026-11-27, not kept: twice the images. The same three folders plus a fresh one
 (`--seed 2525 --split train`, 6,000 images): 12,900 images, 148,741 verified candidates (24,980 on
 markers). Checked on ten train-split dev sets none of them were fitted on (dev808, dev909, dev1111,
-dev1212 and seeds 1313, 1414, 1515, 1616, 1818, 1919, 300 images each, 6,893 markers):
+dev1212 and seeds 1313, 1414, 1515, 1616, 1818, 1919; 3,200 images, 6,893 markers):
 
 - candidates kept at the cut 0.65: shipped 6,024 markers / 81 false candidates; refitted 6,028 / 74;
   refitted with depth 8 and 400 trees 6,038 / 79;
