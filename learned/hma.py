@@ -316,7 +316,9 @@ def load_torch_file(path: str | os.PathLike, what: str, map_location: str | torc
     try:
         return torch.load(p, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
-        if "weights only" in str(exc).lower():
+        # torch says "weights only" for any file its restricted unpickler stops on, a text file too
+        torch_like = head == b"PK\x03\x04" or head[:1] == b"\x80"
+        if torch_like and "weights only" in str(exc).lower():
             raise InputError(f"cannot read {what}: it holds Python objects besides tensors and plain values, "
                              "which cpdetect does not load (they could run code)", p) from None
         why = _first_sentence(exc)

@@ -182,6 +182,7 @@ def test_damaged_or_unsafe_weight_files_are_refused_in_words(tmp_path):
     (d / "SHA256SUMS").unlink()  # a folder without digests: torch reads each file, and we say why not
     good = (d / "model.pt").read_bytes()
     cases = [(b"", "empty file"), (b"junk\n", "not a PyTorch file"),
+             (b'{"format": "cpdetect.model/1"}\n', "not a PyTorch file"),
              (good[: len(good) // 2], "damaged or truncated PyTorch file")]
     for data, why in cases:
         (d / "model.pt").write_bytes(data)
