@@ -36,7 +36,7 @@ from typing import Any, Callable, Sequence
 
 from .errors import CpdetectError, InputError
 from .executors import SerialExecutor, make_executor
-from .fileio import write_json_atomic
+from .fileio import cannot_write, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -155,7 +155,7 @@ def detect_batch(jobs: Sequence[BatchJob], detector_name: str, settings: dict, o
     try:
         parts.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise InputError(f"cannot write here: {exc.strerror or exc}", parts) from None
+        raise cannot_write(exc, parts) from None
     try:
         return _run_batch(jobs, detector_name, settings, out, parts, workers, skip_bad, progress, scheduler,
                           executor)

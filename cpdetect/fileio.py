@@ -11,6 +11,16 @@ from typing import Any, Iterator
 from .errors import InputError
 
 
+def cannot_write(exc: OSError, path: str | os.PathLike) -> InputError:
+    """The InputError for an output ``path`` that could not be created: where a folder on the way is
+    an existing file, it says so and names that file (the system's own words are "File exists" or
+    "Not a directory", which do not say which part is wrong)."""
+    for folder in Path(path).parents:
+        if folder.exists() and not folder.is_dir():
+            return InputError(f"cannot write here: {folder} is a file, not a folder", path)
+    return InputError(f"cannot write here: {exc.strerror or exc}", path)
+
+
 def output_target(path: str | os.PathLike) -> Path:
     """The file an output named ``path`` is written to: a symbolic link's target (so that the rename
     of :func:`atomic_path` replaces the file it points to, not the link). InputError naming ``path``
@@ -22,7 +32,7 @@ def output_target(path: str | os.PathLike) -> Path:
         target = Path(os.path.realpath(given)) if link else given
         exists = target.exists()
     except OSError as exc:  # e.g. a name over 255 bytes
-        raise InputError(f"cannot write here: {exc.strerror or exc}", given) from None
+        raise cannot_write(exc, given) from None
     if exists and not target.is_file() and not target.is_dir():
         raise InputError("not a regular file (a device, pipe or socket); outputs are written to files", given)
     if link and not exists and not target.parent.is_dir():
@@ -44,7 +54,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         # the temporary name stays within the 255 bytes a name may have wherever the target's does
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name[:64]}.", suffix=".part", dir=path.parent)
     except OSError as exc:
-        raise InputError(f"cannot write here: {exc.strerror or exc}", path) from None
+        raise cannot_write(exc, path) from None
     os.close(fd)
     tmp_path = Path(tmp)
     try:
@@ -121,7 +131,7 @@ def staged_outputs(folder: str | os.PathLike, stale: tuple[str, ...] = ()) -> It
         folder.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=".staged-", dir=folder))
     except OSError as exc:
-        raise InputError(f"cannot write here: {exc.strerror or exc}", folder) from None
+        raise cannot_write(exc, folder) from None
     try:
         yield tmp
         written = sorted(p.relative_to(tmp) for p in tmp.rglob("*") if p.is_file())

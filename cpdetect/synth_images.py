@@ -38,7 +38,7 @@ from .backgrounds import SPLITS, BackgroundLibrary, list_backgrounds
 from .confusers import CONFUSER_KINDS, draw_confuser
 from .dataset import MARKERS_JSON, TrueMarker, image_record, write_markers_json
 from .errors import InputError
-from .fileio import write_bytes_atomic
+from .fileio import cannot_write, write_bytes_atomic
 from .markers import MarkerSpec, apply_homography, plane_homography, projected_radius, render_marker
 from .types import MARKER_TYPES
 
@@ -583,6 +583,10 @@ def write_synth_images(out: str | os.PathLike, n: int, seed: int, opt: SynthImag
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise InputError("output must be a folder, found a file", out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise cannot_write(exc, out) from None
     # an interrupted run must not leave an old markers.json describing a mix of old and new images
     (out / MARKERS_JSON).unlink(missing_ok=True)
     records: list[dict] = []

@@ -381,6 +381,8 @@ class SiteReport:
 
 
 def _prepare_out(out_dir: Path, overwrite: bool) -> Path:
+    from .fileio import cannot_write
+
     if out_dir.exists():
         if not out_dir.is_dir():
             raise InputError("exists and is not a folder", out_dir)
@@ -390,7 +392,7 @@ def _prepare_out(out_dir: Path, overwrite: bool) -> Path:
         out_dir.parent.mkdir(parents=True, exist_ok=True)
         return Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".part", dir=out_dir.parent))
     except OSError as exc:
-        raise InputError(f"cannot write here: {exc.strerror or exc}", out_dir) from None
+        raise cannot_write(exc, out_dir) from None
 
 
 def write_site(out_dir: str | os.PathLike, settings: SiteSettings, overwrite: bool = False,

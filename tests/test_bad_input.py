@@ -259,7 +259,7 @@ def test_detect_requests(cli, tmp_path, marker_jpeg, case):
         named = [out, "is a folder"]
     elif case == "output under a file":
         out = tmp_path / "afile" / "det.json"
-        named = [tmp_path / "afile", "cannot write here"]
+        named = [tmp_path / "afile", "is a file, not a folder"]
     elif case == "missing input":
         inp = tmp_path / "absent.jpg"
         named = [inp, "not found"]
@@ -567,3 +567,21 @@ def test_a_pipe_given_as_a_point_file_is_refused_without_reading_it(tmp_path, wh
     assert r.returncode == 2 and r.stderr.strip().splitlines() == [
         f"cpdetect register: error: {fifo}: expected a CSV file, found a device, pipe or socket"]
     assert not (tmp_path / "r.json").exists()
+
+
+@pytest.mark.parametrize("command", ["detect", "synth images", "synth scene", "register"])
+def test_output_under_a_file_is_named(cli, tmp_path, marker_jpeg, command):
+    # the system says "File exists" or "Not a directory"; the user is told which part of the path is a file
+    (tmp_path / "afile").write_text("x")
+    out = tmp_path / "afile" / "sub" / "out"
+    argv = {"detect": ["detect", marker_jpeg, "--out", out],
+            "synth images": ["synth", "images", "--out", out, "--n", "1"],
+            "synth scene": ["synth", "scene", "--out", out],
+            "register": ["register", "--detected", tmp_path / "d.csv", "--surveyed", tmp_path / "s.csv",
+                         "--out", out]}[command]
+    (tmp_path / "d.csv").write_text(GOOD_DETECTED)
+    (tmp_path / "s.csv").write_text(GOOD_SURVEYED)
+    before = files_under(tmp_path)
+    res = cli("-q", *argv)
+    assert_one_line_error(res, f"cannot write here: {tmp_path / 'afile'} is a file, not a folder")
+    assert files_under(tmp_path) == before

@@ -32,6 +32,7 @@ from geometry.scene import ImageRecord, Scene
 from geometry.transforms import Rigid3, Sim3
 
 from ..errors import InputError
+from ..fileio import cannot_write
 
 log = logging.getLogger(__name__)
 
@@ -362,7 +363,7 @@ def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent))
     except OSError as exc:
-        raise InputError(f"cannot write here: {exc.strerror or exc}", path) from None
+        raise cannot_write(exc, path) from None
     try:
         yield tmp
         old = None
