@@ -313,7 +313,7 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
           on_iteration: Callable[[int, dict], None] | None = None) -> TrainResult:
     """Train (or resume) a model into ``cfg.out``; ``samples`` overrides reading ``cfg.data``."""
     from cpdetect.errors import InputError, UsageError
-    from cpdetect.fileio import write_json_atomic
+    from cpdetect.fileio import cannot_write, write_json_atomic
 
     t_start = time.time()
     torch.set_num_threads(max(1, int(cfg.threads)))
@@ -401,7 +401,10 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
             raise InputError(f"checkpoint does not fit this run: {why}", ckpt_path) from None
         log.info("resumed from %s at iteration %d (best IoU %s)", ckpt_path, it, best)
     # the folder appears only once the inputs are good (a failed start leaves nothing behind)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise cannot_write(exc, out) from None
     write_json_atomic(out / "train_args.json", _jsonable(cfg))
 
     total = cfg.epochs * cfg.iters_per_epoch

@@ -569,12 +569,16 @@ def test_a_pipe_given_as_a_point_file_is_refused_without_reading_it(tmp_path, wh
     assert not (tmp_path / "r.json").exists()
 
 
-@pytest.mark.parametrize("command", ["detect", "synth images", "synth scene", "register"])
+@pytest.mark.parametrize("command", ["detect", "synth images", "synth scene", "register", "train"])
 def test_output_under_a_file_is_named(cli, tmp_path, marker_jpeg, command):
     # the system says "File exists" or "Not a directory"; the user is told which part of the path is a file
     (tmp_path / "afile").write_text("x")
     out = tmp_path / "afile" / "sub" / "out"
-    argv = {"detect": ["detect", marker_jpeg, "--out", out],
+    if command == "train":
+        pytest.importorskip("torch")
+        assert cli("-q", "synth", "images", "--out", tmp_path / "ds", "--n", "1").rc == 0
+    argv = {"train": ["train", "--data", tmp_path / "ds", "--out", out, "--epochs", "1", "--iters-per-epoch", "1"],
+            "detect": ["detect", marker_jpeg, "--out", out],
             "synth images": ["synth", "images", "--out", out, "--n", "1"],
             "synth scene": ["synth", "scene", "--out", out],
             "register": ["register", "--detected", tmp_path / "d.csv", "--surveyed", tmp_path / "s.csv",
