@@ -583,12 +583,11 @@ def write_synth_images(out: str | os.PathLike, n: int, seed: int, opt: SynthImag
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise InputError("output must be a folder, found a file", out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise cannot_write(exc, out) from None
     # an interrupted run must not leave an old markers.json describing a mix of old and new images
-    (out / MARKERS_JSON).unlink(missing_ok=True)
+    try:
+        (out / MARKERS_JSON).unlink(missing_ok=True)
+    except OSError as exc:  # e.g. a folder on the way is a file (the folder itself is made later)
+        raise cannot_write(exc, out) from None
     records: list[dict] = []
     if workers <= 1 or n < 4:
         lib = BackgroundLibrary(list_backgrounds(opt.split))
