@@ -313,21 +313,21 @@ def load_torch_file(path: str | os.PathLike, what: str, map_location: str | torc
         raise InputError(f"cannot read {what}: {exc.strerror or exc}", p) from None
     if not head:
         raise InputError(f"cannot read {what}: empty file", p)
+    # the format torch.save writes is a zip archive; the legacy one a pickle (protocol 2+: 0x80)
+    zipped, legacy = head == b"PK\x03\x04", head[:1] == b"\x80"
     try:
         return torch.load(p, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
         # torch says "weights only" for any file its restricted unpickler stops on, a text file too
-        torch_like = head == b"PK\x03\x04" or head[:1] == b"\x80"
-        if torch_like and "weights only" in str(exc).lower():
+        if (zipped or legacy) and "weights only" in str(exc).lower():
             raise InputError(f"cannot read {what}: it holds Python objects besides tensors and plain values, "
                              "which cpdetect does not load (they could run code)", p) from None
         why = _first_sentence(exc)
     except Exception as exc:  # noqa: BLE001 - torch raises many kinds for a damaged file
         why = _first_sentence(exc)
-    # the format torch.save writes is a zip archive; the legacy one a pickle (protocol 2+: 0x80)
-    if head == b"PK\x03\x04":
+    if zipped:
         raise InputError(f"cannot read {what}: damaged or truncated PyTorch file ({why})", p)
-    if head[:1] == b"\x80":
+    if legacy:
         raise InputError(f"cannot read {what}: damaged or truncated PyTorch file (legacy format; {why})", p)
     raise InputError(f"cannot read {what}: not a PyTorch file", p)
 
