@@ -20,6 +20,7 @@ Steps for one image (uint8 gray or BGR; a path is read as gray):
    about it wins;
    Blobs that yield no marker, and that the network is not sure of (mean P < ``clear_rejected_below``),
    are cleared from the probability map the detector returns: louvers, window crosses, dark arches;
+   opt-in, that map is the mean with the mirror image's (``mirror_map``, :mod:`learned.mirror_map`);
 4. keep or drop: with an instance model beside the weights (``instance_score.json``, see
    :mod:`learned.instances`), a logistic model over the blob's confidence, shape and centre evidence
    decides, and its probability is the detection's score; without one, rules do (a verified centre,
@@ -53,6 +54,7 @@ from cpdetect.types import DetectionResult, MarkerDetection
 
 from .centre_choice import CentreRanker, load_centre_ranker
 from .instances import InstanceModel, blob_features, load_instance_model
+from .mirror_map import keep_marker_blobs, mirrored_mean
 
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parent / "weights" / "default"
 # the classical marker score (package data of cpdetect) whose values the shipped centre ranker and
@@ -193,6 +195,15 @@ class HMASettings:
         so the same markers are found. On the fresh test-split sets 9000 / 9100 / 9200 / 9300 the
         shipped network's centre error went from 0.085 / 0.068 / 0.057 / 0.065 px mean to 0.077 /
         0.060 / 0.051 / 0.059 (p95 0.149 / 0.205 / 0.170 / 0.152 -> 0.118 / 0.185 / 0.165 / 0.145).
+    mirror_map: the probability map returned is the mean of the image's map and its mirror image's
+        (:mod:`learned.mirror_map`), cleared of the blobs that hold no marker by the
+        ``clear_rejected_below`` rule; the markers still come from the image's map alone. "never"
+        (the default), "small" (the images seen at ``small_scales``, where the second network pass
+        costs least) or "always". Opt-in because it did not help reliably (2026-11-28, "small"): on
+        the train-split dev sets 808 / 909 pixel IoU 0.9333 -> 0.9409 and 0.9280 -> 0.9328 with the
+        same markers, but on the fresh sets 9000-9500 0.9015 / 0.9260 / 0.9316 / 0.9055 / 0.9201 /
+        0.9245 -> 0.9181 / 0.9279 / 0.9347 / 0.9031 / 0.9165 / 0.9196 (a blob the network was sure
+        of in one pass and not in the mean is cleared, marker or not), at 2x the network time.
     One torch thread per detector because cpdetect parallelises over images (``--workers``): torch's
     multi-threaded kernels on an oversubscribed CPU ran 20x slower here (13.7 against 0.71 s per
     megapixel with one other busy process on 2 cores). OpenCV's threads share a busy CPU gracefully
@@ -236,6 +247,7 @@ class HMASettings:
     seed_pool: int = 24
     outline_window: float = 1.0
     model_fit: bool = True
+    mirror_map: str = "never"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "scales", tuple(float(s) for s in self.scales))
@@ -290,6 +302,8 @@ class HMASettings:
             raise ValueError(f"threads must be a positive integer (or None), got {self.threads!r}")
         if not self.min_centre_reach >= 0:
             raise ValueError("min_centre_reach must be 0 or more")
+        if self.mirror_map not in ("small", "always", "never"):
+            raise ValueError(f"mirror_map must be small, always or never, got {self.mirror_map!r}")
 
 
 def _quad_from_hull(hull: np.ndarray) -> np.ndarray | None:
@@ -487,6 +501,14 @@ class HMADetector:
             return s.small_scales
         return s.scales
 
+    def mirrors(self, width: int, height: int) -> bool:
+        """Whether the returned map of an image of this size is the mean with its mirror image's
+        (``mirror_map``)."""
+        s = self.settings
+        if s.mirror_map != "small":
+            return s.mirror_map == "always"
+        return s.small_scales is not None and self.scales_for(width, height) == s.small_scales
+
     def probability(self, gray: np.ndarray):
         from .infer import probability_map
 
@@ -511,15 +533,18 @@ class HMADetector:
                                    seconds=time.perf_counter() - t0,
                                    extras={"backend": self.backend.name, "scales": [], "probability_factor": 1.0})
         pm = self.probability(gray)
-        dets, prob = self._instances(gray, pm.prob, pm.factor, seeds,
-                                     classical.detections if s.classical_markers else None)
+        witnesses = classical.detections if s.classical_markers else None
+        dets, prob = self._instances(gray, pm.prob, pm.factor, seeds, witnesses)
+        if self.mirrors(w, h):
+            mean = mirrored_mean(gray, pm.prob, lambda g: self.probability(g).prob)
+            prob = keep_marker_blobs(mean, dets, pm.factor, s.threshold, s.clear_rejected_below, witnesses)
         if s.classical_markers:
             dets, prob = _with_classical_markers(dets, prob, pm.factor, classical, pm.prob, s.classical_min_support)
         dets.sort(key=lambda d: -d.score)
         return DetectionResult(detections=dets, image_size=(w, h), probability=prob,
                                seconds=time.perf_counter() - t0,
                                extras={"backend": self.backend.name, "scales": list(self.scales_for(w, h)),
-                                       "probability_factor": pm.factor})
+                                       "probability_factor": pm.factor, "mirrored_map": self.mirrors(w, h)})
 
     # ------------------------------------------------------------------
     def candidates(self, gray: np.ndarray, prob: np.ndarray, f: float,

@@ -1,0 +1,106 @@
+"""The returned map of ``hma`` as the mean of the image's and its mirror image's (learned.mirror_map)."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from cpdetect.types import MarkerDetection
+from learned.adapter import HMADetector
+from learned.mirror_map import keep_marker_blobs, mirrored_mean
+from test_learned_detector import OracleBackend, rendered
+
+
+def _det(x: float, y: float) -> MarkerDetection:
+    return MarkerDetection(x=x, y=y, score=0.9, type="square", radius_px=10.0, sigma_px=0.1)
+
+
+class ContrastBackend:
+    """A network whose logits grow with the local contrast (standard deviation over a symmetric box,
+    mirrored borders), so mirroring the image mirrors its map."""
+
+    name = "contrast"
+
+    def trunk(self, x: np.ndarray):
+        x = x.astype(np.float32)
+        mean, mean_sq = cv2.blur(x, (9, 9)), cv2.blur(x * x, (9, 9))
+        logit = 40.0 * (np.sqrt(np.maximum(mean_sq - mean * mean, 0.0)) - 0.12)
+        return np.stack([np.zeros_like(logit), logit]), np.full(x.shape, 0.5, np.float32)
+
+
+def test_a_map_that_mirrors_with_the_image_is_its_own_mean():
+    gray = np.random.default_rng(3).integers(0, 256, (37, 53)).astype(np.uint8)
+    pointwise = lambda g: (g.astype(np.float32) / 255.0) ** 2  # noqa: E731
+    prob = pointwise(gray)
+    assert np.array_equal(mirrored_mean(gray, prob, pointwise), prob)
+
+
+def test_a_map_that_ignores_the_image_is_averaged_with_its_mirror():
+    gray = np.zeros((20, 30), np.uint8)
+    fixed = np.random.default_rng(4).random((20, 30)).astype(np.float32)
+    mean = mirrored_mean(gray, fixed, lambda g: fixed)
+    assert mean.dtype == np.float32 and mean.flags.c_contiguous
+    assert np.allclose(mean, 0.5 * (fixed + fixed[:, ::-1]), atol=1e-7)
+    assert not np.allclose(mean, fixed)
+    with pytest.raises(ValueError, match="mirror image's map"):
+        mirrored_mean(gray, fixed, lambda g: fixed[:, 1:])
+
+
+def test_blobs_keep_where_a_marker_lies_or_the_network_is_sure():
+    prob = np.zeros((60, 80), np.float32)
+    prob[5:15, 5:15] = 0.7    # a marker's blob, not sure
+    prob[5:15, 40:50] = 0.95  # sure, no marker
+    prob[40:50, 5:15] = 0.7   # unsure, no marker: cleared
+    prob[40:50, 40:50] = 0.3  # under the threshold: no blob, left as it is
+    # f = 0.5 map pixels per image pixel: the image point (19.5, 19.5) is map pixel (9.5, 9.5) -> (10, 10)
+    out = keep_marker_blobs(prob, [_det(19.5, 19.5)], 0.5, 0.5, 0.9)
+    assert out.dtype == np.float32
+    assert np.array_equal(out[5:15, 5:15], prob[5:15, 5:15])
+    assert np.array_equal(out[5:15, 40:50], prob[5:15, 40:50])
+    assert not out[40:50, 5:15].any()
+    assert np.array_equal(out[40:50, 40:50], prob[40:50, 40:50])
+    # witnesses given: a sure blob stays only where one of them lies
+    unseen = keep_marker_blobs(prob, [_det(19.5, 19.5)], 0.5, 0.5, 0.9, witnesses=[])
+    assert not unseen[5:15, 40:50].any() and unseen[5:15, 5:15].all()
+    seen = keep_marker_blobs(prob, [_det(19.5, 19.5)], 0.5, 0.5, 0.9, witnesses=[_det(90.0, 20.0)])
+    assert np.array_equal(seen[5:15, 40:50], prob[5:15, 40:50])
+    # nothing over the threshold: the map itself
+    low = np.full((10, 10), 0.2, np.float32)
+    assert keep_marker_blobs(low, [], 1.0, 0.5, 0.9) is low
+
+
+def test_the_markers_come_from_the_image_map_and_only_the_returned_map_changes():
+    # the marker's mirror image overlaps it (centred on the mirror axis): one blob, holding the marker
+    img, mask, _ = rendered("square", center=(127.5, 128.0), radius=24.0, angle=0.4)
+    never = HMADetector.with_backend(OracleBackend(mask), mirror_map="never").detect(img)
+    small = HMADetector.with_backend(OracleBackend(mask), mirror_map="small").detect(img)
+    default = HMADetector.with_backend(OracleBackend(mask)).detect(img)
+    assert never.extras["mirrored_map"] is False and small.extras["mirrored_map"] is True
+    # opt-in: the default map is the image's own
+    assert default.extras["mirrored_map"] is False and np.array_equal(default.probability, never.probability)
+    assert len(never.detections) == 1 and small.detections == never.detections
+    # this backend does not mirror with its input: its mirror image's map is the mask mirrored
+    expected = 0.5 * (never.probability + never.probability[:, ::-1])
+    assert np.allclose(small.probability, expected, atol=1e-5)
+
+
+def test_a_mirror_symmetric_network_gives_the_same_map_either_way():
+    img, _, _ = rendered("circle", center=(120.0, 131.0), radius=30.0, angle=0.2)
+    never = HMADetector.with_backend(ContrastBackend(), mirror_map="never", scales=(1.0,)).detect(img)
+    always = HMADetector.with_backend(ContrastBackend(), mirror_map="always", scales=(1.0,)).detect(img)
+    assert len(never.detections) == 1 and (never.probability >= 0.5).any()
+    assert always.extras["mirrored_map"] is True
+    assert always.detections == never.detections
+    assert np.abs(always.probability - never.probability).max() < 1e-4
+
+
+def test_small_mirrors_only_images_seen_at_the_small_scales():
+    assert not HMADetector.with_backend(OracleBackend(np.zeros((8, 8)))).mirrors(640, 480)
+    det = HMADetector.with_backend(OracleBackend(np.zeros((8, 8))), mirror_map="small")
+    assert det.mirrors(640, 480) and det.mirrors(1024, 1024)
+    assert not det.mirrors(8192, 5460) and not det.mirrors(1025, 700)
+    assert HMADetector.with_backend(OracleBackend(np.zeros((8, 8))), mirror_map="always").mirrors(8192, 5460)
+    assert not HMADetector.with_backend(OracleBackend(np.zeros((8, 8))), mirror_map="small",
+                                        small_scales=None).mirrors(640, 480)
+    with pytest.raises(ValueError, match="mirror_map must be"):
+        HMADetector.with_backend(OracleBackend(np.zeros((8, 8))), mirror_map="yes")
