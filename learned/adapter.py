@@ -54,7 +54,7 @@ from cpdetect.types import DetectionResult, MarkerDetection
 
 from .centre_choice import CentreRanker, load_centre_ranker
 from .instances import InstanceModel, blob_features, load_instance_model
-from .mirror_map import keep_marker_blobs, mirrored_mean
+from .mirror_map import keep_blobs_of, mirrored_mean
 
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parent / "weights" / "default"
 # the classical marker score (package data of cpdetect) whose values the shipped centre ranker and
@@ -196,14 +196,11 @@ class HMASettings:
         shipped network's centre error went from 0.085 / 0.068 / 0.057 / 0.065 px mean to 0.077 /
         0.060 / 0.051 / 0.059 (p95 0.149 / 0.205 / 0.170 / 0.152 -> 0.118 / 0.185 / 0.165 / 0.145).
     mirror_map: the probability map returned is the mean of the image's map and its mirror image's
-        (:mod:`learned.mirror_map`), cleared of the blobs that hold no marker by the
-        ``clear_rejected_below`` rule; the markers still come from the image's map alone. "never"
-        (the default), "small" (the images seen at ``small_scales``, where the second network pass
-        costs least) or "always". Opt-in because it did not help reliably (2026-11-28, "small"): on
-        the train-split dev sets 808 / 909 pixel IoU 0.9333 -> 0.9409 and 0.9280 -> 0.9328 with the
-        same markers, but on the fresh sets 9000-9500 0.9015 / 0.9260 / 0.9316 / 0.9055 / 0.9201 /
-        0.9245 -> 0.9181 / 0.9279 / 0.9347 / 0.9031 / 0.9165 / 0.9196 (a blob the network was sure
-        of in one pass and not in the mean is cleared, marker or not), at 2x the network time.
+        (:mod:`learned.mirror_map`), where the blobs that stay are those the image's map keeps; the
+        markers still come from the image's map alone. "never" (the default), "small" (the images
+        seen at ``small_scales``, where the second network pass costs least) or "always". Opt-in:
+        at twice the network time it moved pixel IoU by +0.0018 / +0.0047 / +0.0001 / +0.0019 on
+        the train-split dev sets 808 / 909 / 1111 / 1212 (2026-11-28, "small"), the same markers.
     One torch thread per detector because cpdetect parallelises over images (``--workers``): torch's
     multi-threaded kernels on an oversubscribed CPU ran 20x slower here (13.7 against 0.71 s per
     megapixel with one other busy process on 2 cores). OpenCV's threads share a busy CPU gracefully
@@ -537,7 +534,7 @@ class HMADetector:
         dets, prob = self._instances(gray, pm.prob, pm.factor, seeds, witnesses)
         if self.mirrors(w, h):
             mean = mirrored_mean(gray, pm.prob, lambda g: self.probability(g).prob)
-            prob = keep_marker_blobs(mean, dets, pm.factor, s.threshold, s.clear_rejected_below, witnesses)
+            prob = keep_blobs_of(mean, prob, s.threshold)
         if s.classical_markers:
             dets, prob = _with_classical_markers(dets, prob, pm.factor, classical, pm.prob, s.classical_min_support)
         dets.sort(key=lambda d: -d.score)

@@ -5,14 +5,9 @@ import cv2
 import numpy as np
 import pytest
 
-from cpdetect.types import MarkerDetection
 from learned.adapter import HMADetector
-from learned.mirror_map import keep_marker_blobs, mirrored_mean
+from learned.mirror_map import keep_blobs_of, mirrored_mean
 from test_learned_detector import OracleBackend, rendered
-
-
-def _det(x: float, y: float) -> MarkerDetection:
-    return MarkerDetection(x=x, y=y, score=0.9, type="square", radius_px=10.0, sigma_px=0.1)
 
 
 class ContrastBackend:
@@ -46,27 +41,31 @@ def test_a_map_that_ignores_the_image_is_averaged_with_its_mirror():
         mirrored_mean(gray, fixed, lambda g: fixed[:, 1:])
 
 
-def test_blobs_keep_where_a_marker_lies_or_the_network_is_sure():
-    prob = np.zeros((60, 80), np.float32)
-    prob[5:15, 5:15] = 0.7    # a marker's blob, not sure
-    prob[5:15, 40:50] = 0.95  # sure, no marker
-    prob[40:50, 5:15] = 0.7   # unsure, no marker: cleared
-    prob[40:50, 40:50] = 0.3  # under the threshold: no blob, left as it is
-    # f = 0.5 map pixels per image pixel: the image point (19.5, 19.5) is map pixel (9.5, 9.5) -> (10, 10)
-    out = keep_marker_blobs(prob, [_det(19.5, 19.5)], 0.5, 0.5, 0.9)
+def test_the_image_map_decides_which_blobs_of_the_mean_stay():
+    mean = np.zeros((60, 80), np.float32)
+    mean[5:15, 5:15] = 0.7    # kept in the image's map, larger in the mean: stays whole
+    mean[5:15, 40:50] = 0.95  # cleared in the image's map, sure in the mean: cleared
+    mean[40:50, 5:15] = 0.6   # under the threshold in the image's map, a blob in the mean: cleared
+    mean[40:50, 40:50] = 0.3  # under the threshold: no blob, left as it is
+    kept = np.zeros_like(mean)
+    kept[7:13, 7:13] = 0.8
+    kept[40:50, 5:15] = 0.4
+    kept[45, 45] = 0.9        # under the mean's threshold there: keeps nothing
+    out = keep_blobs_of(mean, kept, 0.5)
     assert out.dtype == np.float32
-    assert np.array_equal(out[5:15, 5:15], prob[5:15, 5:15])
-    assert np.array_equal(out[5:15, 40:50], prob[5:15, 40:50])
-    assert not out[40:50, 5:15].any()
-    assert np.array_equal(out[40:50, 40:50], prob[40:50, 40:50])
-    # witnesses given: a sure blob stays only where one of them lies
-    unseen = keep_marker_blobs(prob, [_det(19.5, 19.5)], 0.5, 0.5, 0.9, witnesses=[])
-    assert not unseen[5:15, 40:50].any() and unseen[5:15, 5:15].all()
-    seen = keep_marker_blobs(prob, [_det(19.5, 19.5)], 0.5, 0.5, 0.9, witnesses=[_det(90.0, 20.0)])
-    assert np.array_equal(seen[5:15, 40:50], prob[5:15, 40:50])
+    assert np.array_equal(out[5:15, 5:15], mean[5:15, 5:15])
+    assert not out[5:15, 40:50].any() and not out[40:50, 5:15].any()
+    assert np.array_equal(out[40:50, 40:50], mean[40:50, 40:50])
+    # one shared pixel is enough; the threshold applies to both maps
+    kept2 = np.zeros_like(mean)
+    kept2[14, 49] = 0.5
+    assert np.array_equal(keep_blobs_of(mean, kept2, 0.5)[5:15, 40:50], mean[5:15, 40:50])
+    assert not keep_blobs_of(mean, kept2, 0.51)[5:15, 40:50].any()
     # nothing over the threshold: the map itself
     low = np.full((10, 10), 0.2, np.float32)
-    assert keep_marker_blobs(low, [], 1.0, 0.5, 0.9) is low
+    assert keep_blobs_of(low, low, 0.5) is low
+    with pytest.raises(ValueError, match="kept map"):
+        keep_blobs_of(mean, kept[1:], 0.5)
 
 
 def test_the_markers_come_from_the_image_map_and_only_the_returned_map_changes():
