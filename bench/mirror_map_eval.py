@@ -1,0 +1,91 @@
+"""Pixel figures of the ``hma`` detector's returned map with and without ``mirror_map``, in one run.
+
+For every image of a dataset (``cpdetect synth images`` output or any dataset in our contract) the
+detector runs once as ``cpdetect eval`` runs it (``mirror_map="never"``, the default); the network is
+then run on the image mirrored left to right, and the map ``mirror_map="small"`` would return is
+made from the two (:func:`learned.mirror_map.mirrored_mean`, :func:`learned.mirror_map.keep_blobs_of`),
+so both are scored against the same masks at the threshold of :class:`cpdetect.evaluate.PixelCounts`.
+The markers are the same either way (they come from the image's own map), so only pixel figures
+are given. Costs two network passes per image (about 8 s per 640 x 480 image with two runs at once
+on a 2-core CPU).
+
+    .venv/bin/python bench/mirror_map_eval.py DATASET [--limit N] [--out bench/results/mirror_map_eval.json]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+RESULTS = Path(__file__).parent / "results" / "mirror_map_eval.json"
+
+
+def _figures(c) -> dict:
+    return {"tp": c.tp, "fp": c.fp, "fn": c.fn, "iou": c.tp / max(c.tp + c.fp + c.fn, 1),
+            "f1": 2 * c.tp / max(2 * c.tp + c.fp + c.fn, 1)}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("dataset")
+    ap.add_argument("--limit", type=int, help="the first N images only")
+    ap.add_argument("--threads", type=int, default=1, help="network threads (1: two runs share 2 cores)")
+    ap.add_argument("--out", default=str(RESULTS))
+    args = ap.parse_args(argv)
+
+    from cpdetect.dataset import load_dataset, read_mask
+    from cpdetect.detector import as_gray_uint8, get_detector
+    from cpdetect.errors import InputError
+    from cpdetect.evaluate import PixelCounts
+    from cpdetect.fileio import write_json_atomic
+    from cpdetect.imageio import read_image
+    from cpdetect.types import DetectionResult
+    from learned.mirror_map import keep_blobs_of, mirrored_mean
+
+    try:
+        ds = load_dataset(args.dataset)
+    except (InputError, OSError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    det = get_detector("hma", threads=args.threads, mirror_map="never")
+    network = det.probability
+    last = {}
+
+    def probability(gray):  # the detector's own pass, kept for the mirror step
+        last["pm"] = network(gray)
+        return last["pm"]
+
+    det.probability = probability
+    items = ds.images if args.limit is None else ds.images[:max(args.limit, 0)]
+    counts = {"never": PixelCounts(), "small": PixelCounts()}
+    for k, item in enumerate(items):
+        image = read_image(ds.image_path(item))
+        h, w = image.shape[:2]
+        res = det.detect(image)
+        if item.mask is None or "pm" not in last:
+            continue
+        pm = last.pop("pm")
+        mean = mirrored_mean(as_gray_uint8(image), pm.prob, lambda g: network(g).prob)
+        mirrored = keep_blobs_of(mean, res.probability, det.settings.threshold)
+        truth = read_mask(ds.mask_path(item), shape=(h, w))
+        for name, prob in (("never", res.probability), ("small", mirrored)):
+            at = DetectionResult(detections=res.detections, image_size=(w, h), probability=prob, seconds=0.0)
+            counts[name].add(at.probability_at(w, h), truth)
+        if (k + 1) % 50 == 0:
+            print(f"{k + 1}/{len(items)}", {n: round(_figures(c)["iou"], 4) for n, c in counts.items()},
+                  file=sys.stderr, flush=True)
+    report = {"dataset": str(ds.root), "images": len(items),
+              "mirror_map": {n: _figures(c) for n, c in counts.items()},
+              "iou_change": float(np.subtract(_figures(counts["small"])["iou"], _figures(counts["never"])["iou"]))}
+    write_json_atomic(args.out, report)
+    for n, c in counts.items():
+        f = _figures(c)
+        print(f"mirror_map={n:5s}  pixel IoU {f['iou']:.4f}  pixel F1 {f['f1']:.4f}  "
+              f"false px {f['fp']}  missed px {f['fn']}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
