@@ -14,17 +14,17 @@ on a 2-core CPU).
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
-
-import numpy as np
 
 RESULTS = Path(__file__).parent / "results" / "mirror_map_eval.json"
 
 
 def _figures(c) -> dict:
-    return {"tp": c.tp, "fp": c.fp, "fn": c.fn, "iou": c.tp / max(c.tp + c.fp + c.fn, 1),
-            "f1": 2 * c.tp / max(2 * c.tp + c.fp + c.fn, 1)}
+    """``PixelCounts.metrics()`` (None where undefined: no pixels) with the pixel counts beside them."""
+    m = {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in c.metrics().items()}
+    return {**m, "tp": c.tp, "fp": c.fp, "fn": c.fn}
 
 
 def main(argv=None) -> int:
@@ -60,29 +60,36 @@ def main(argv=None) -> int:
     det.probability = probability
     items = ds.images if args.limit is None else ds.images[:max(args.limit, 0)]
     counts = {"never": PixelCounts(), "small": PixelCounts()}
-    for k, item in enumerate(items):
-        image = read_image(ds.image_path(item))
-        h, w = image.shape[:2]
-        res = det.detect(image)
-        if item.mask is None or "pm" not in last:
-            continue
-        pm = last.pop("pm")
-        mean = mirrored_mean(as_gray_uint8(image), pm.prob, lambda g: network(g).prob)
-        mirrored = keep_blobs_of(mean, res.probability, det.settings.threshold)
-        truth = read_mask(ds.mask_path(item), shape=(h, w))
-        for name, prob in (("never", res.probability), ("small", mirrored)):
-            at = DetectionResult(detections=res.detections, image_size=(w, h), probability=prob, seconds=0.0)
-            counts[name].add(at.probability_at(w, h), truth)
-        if (k + 1) % 50 == 0:
-            print(f"{k + 1}/{len(items)}", {n: round(_figures(c)["iou"], 4) for n, c in counts.items()},
-                  file=sys.stderr, flush=True)
-    report = {"dataset": str(ds.root), "images": len(items),
-              "mirror_map": {n: _figures(c) for n, c in counts.items()},
-              "iou_change": float(np.subtract(_figures(counts["small"])["iou"], _figures(counts["never"])["iou"]))}
+    try:
+        for k, item in enumerate(items):
+            image = read_image(ds.image_path(item))
+            h, w = image.shape[:2]
+            res = det.detect(image)
+            if item.mask is None or "pm" not in last:
+                continue
+            pm = last.pop("pm")
+            mean = mirrored_mean(as_gray_uint8(image), pm.prob, lambda g: network(g).prob)
+            mirrored = keep_blobs_of(mean, res.probability, det.settings.threshold)
+            truth = read_mask(ds.mask_path(item), shape=(h, w))
+            for name, prob in (("never", res.probability), ("small", mirrored)):
+                at = DetectionResult(detections=res.detections, image_size=(w, h), probability=prob, seconds=0.0)
+                counts[name].add(at.probability_at(w, h), truth)
+            if (k + 1) % 50 == 0:
+                print(f"{k + 1}/{len(items)}", {n: round(_figures(c)["iou"], 4) for n, c in counts.items()},
+                      file=sys.stderr, flush=True)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    figures = {n: _figures(c) for n, c in counts.items()}
+    iou = [figures[n]["iou"] for n in ("never", "small")]
+    report = {"dataset": str(ds.root), "images": len(items), "mirror_map": figures,
+              "iou_change": None if None in iou else iou[1] - iou[0]}
     write_json_atomic(args.out, report)
-    for n, c in counts.items():
-        f = _figures(c)
-        print(f"mirror_map={n:5s}  pixel IoU {f['iou']:.4f}  pixel F1 {f['f1']:.4f}  "
+    def fmt(v):
+        return "n/a" if v is None else f"{v:.4f}"
+
+    for n, f in figures.items():
+        print(f"mirror_map={n:5s}  pixel IoU {fmt(f['iou'])}  pixel F1 {fmt(f['f1'])}  "
               f"false px {f['fp']}  missed px {f['fn']}")
     return 0
 

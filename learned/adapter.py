@@ -532,7 +532,8 @@ class HMADetector:
         pm = self.probability(gray)
         witnesses = classical.detections if s.classical_markers else None
         dets, prob = self._instances(gray, pm.prob, pm.factor, seeds, witnesses)
-        if self.mirrors(w, h):
+        mirrored = self.mirrors(w, h)
+        if mirrored:
             mean = mirrored_mean(gray, pm.prob, lambda g: self.probability(g).prob)
             prob = keep_blobs_of(mean, prob, s.threshold)
         if s.classical_markers:
@@ -541,7 +542,7 @@ class HMADetector:
         return DetectionResult(detections=dets, image_size=(w, h), probability=prob,
                                seconds=time.perf_counter() - t0,
                                extras={"backend": self.backend.name, "scales": list(self.scales_for(w, h)),
-                                       "probability_factor": pm.factor, "mirrored_map": self.mirrors(w, h)})
+                                       "probability_factor": pm.factor, "mirrored_map": mirrored})
 
     # ------------------------------------------------------------------
     def candidates(self, gray: np.ndarray, prob: np.ndarray, f: float,
