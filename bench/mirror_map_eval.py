@@ -1,13 +1,14 @@
 """Pixel figures of the ``hma`` detector's returned map with and without ``mirror_map``, in one run.
 
 For every image of a dataset (``cpdetect synth images`` output or any dataset in our contract) the
-detector runs once as ``cpdetect eval`` runs it (``mirror_map="never"``, the default); the network is
+detector runs once as ``cpdetect eval`` runs it but with ``mirror_map="never"``; the network is
 then run on the image mirrored left to right, and the map ``mirror_map="small"`` would return is
 made from the two (:func:`learned.mirror_map.mirrored_mean`, :func:`learned.mirror_map.keep_blobs_of`),
 so both are scored against the same masks at the threshold of :class:`cpdetect.evaluate.PixelCounts`.
-The markers are the same either way (they come from the image's own map), so only pixel figures
-are given. Costs two network passes per image (about 8 s per 640 x 480 image with two runs at once
-on a 2-core CPU).
+The markers are the same either way (they come from the image's own map): their figures (instance
+F1, recall, centre error, type, as :func:`cpdetect.evaluate.summarize` gives them) are reported
+once. Costs two network passes per image (about 8 s per 640 x 480 image with two runs at once on a
+2-core CPU).
 
     .venv/bin/python bench/mirror_map_eval.py DATASET [--limit N] [--out bench/results/mirror_map_eval.json]
 """
@@ -27,6 +28,13 @@ def _figures(c) -> dict:
     return {**m, "tp": c.tp, "fp": c.fp, "fn": c.fn}
 
 
+def _safe(obj):
+    """NaN (undefined: no markers) as None, for JSON."""
+    if isinstance(obj, dict):
+        return {k: _safe(v) for k, v in obj.items()}
+    return None if isinstance(obj, float) and math.isnan(obj) else obj
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("dataset")
@@ -38,7 +46,7 @@ def main(argv=None) -> int:
     from cpdetect.dataset import load_dataset, read_mask
     from cpdetect.detector import as_gray_uint8, get_detector
     from cpdetect.errors import InputError
-    from cpdetect.evaluate import PixelCounts
+    from cpdetect.evaluate import PixelCounts, score_image, summarize
     from cpdetect.fileio import write_json_atomic
     from cpdetect.imageio import read_image
     from cpdetect.types import DetectionResult
@@ -60,11 +68,13 @@ def main(argv=None) -> int:
     det.probability = probability
     items = ds.images if args.limit is None else ds.images[:max(args.limit, 0)]
     counts = {"never": PixelCounts(), "small": PixelCounts()}
+    records = []
     try:
         for k, item in enumerate(items):
             image = read_image(ds.image_path(item))
             h, w = image.shape[:2]
             res = det.detect(image)
+            records.append(score_image(item.file, w, h, 0.0, res.detections, item.markers, item.meta))
             if item.mask is None or "pm" not in last:
                 continue
             pm = last.pop("pm")
@@ -82,8 +92,11 @@ def main(argv=None) -> int:
         return 2
     figures = {n: _figures(c) for n, c in counts.items()}
     iou = [figures[n]["iou"] for n in ("never", "small")]
+    markers = summarize(records, detector="hma")
+    instances = {k: markers[k] for k in ("markers", "tp", "fp", "fn", "precision", "recall", "f1",
+                                         "centre_error_px", "type_accuracy", "centre_visible")}
     report = {"dataset": str(ds.root), "images": len(items), "mirror_map": figures,
-              "iou_change": None if None in iou else iou[1] - iou[0]}
+              "iou_change": None if None in iou else iou[1] - iou[0], "instances": _safe(instances)}
     write_json_atomic(args.out, report)
     def fmt(v):
         return "n/a" if v is None else f"{v:.4f}"
@@ -91,6 +104,9 @@ def main(argv=None) -> int:
     for n, f in figures.items():
         print(f"mirror_map={n:5s}  pixel IoU {fmt(f['iou'])}  pixel F1 {fmt(f['f1'])}  "
               f"false px {f['fp']}  missed px {f['fn']}")
+    i, c = report["instances"], report["instances"]["centre_error_px"]
+    print(f"markers (either way): found {i['tp']} of {i['markers']}, false {i['fp']}, instance F1 {fmt(i['f1'])}, "
+          f"centre mean {fmt(c['mean'])} px, p95 {fmt(c['p95'])}, type {fmt(i['type_accuracy'])}")
     return 0
 
 

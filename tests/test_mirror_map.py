@@ -75,8 +75,8 @@ def test_the_markers_come_from_the_image_map_and_only_the_returned_map_changes()
     small = HMADetector.with_backend(OracleBackend(mask), mirror_map="small").detect(img)
     default = HMADetector.with_backend(OracleBackend(mask)).detect(img)
     assert never.extras["mirrored_map"] is False and small.extras["mirrored_map"] is True
-    # opt-in: the default map is the image's own
-    assert default.extras["mirrored_map"] is False and np.array_equal(default.probability, never.probability)
+    # a 256 x 256 image is seen at small_scales: the default averages its map
+    assert default.extras["mirrored_map"] is True and np.array_equal(default.probability, small.probability)
     assert len(never.detections) == 1 and small.detections == never.detections
     # this backend does not mirror with its input: its mirror image's map is the mask mirrored
     expected = 0.5 * (never.probability + never.probability[:, ::-1])
@@ -94,8 +94,9 @@ def test_a_mirror_symmetric_network_gives_the_same_map_either_way():
 
 
 def test_small_mirrors_only_images_seen_at_the_small_scales():
-    assert not HMADetector.with_backend(OracleBackend(np.zeros((8, 8)))).mirrors(640, 480)
-    det = HMADetector.with_backend(OracleBackend(np.zeros((8, 8))), mirror_map="small")
+    assert not HMADetector.with_backend(OracleBackend(np.zeros((8, 8))), mirror_map="never").mirrors(640, 480)
+    det = HMADetector.with_backend(OracleBackend(np.zeros((8, 8))))  # "small", the default
+    assert det.settings.mirror_map == "small"
     assert det.mirrors(640, 480) and det.mirrors(1024, 1024)
     assert not det.mirrors(8192, 5460) and not det.mirrors(1025, 700)
     assert HMADetector.with_backend(OracleBackend(np.zeros((8, 8))), mirror_map="always").mirrors(8192, 5460)
