@@ -111,23 +111,28 @@ def test_fit_separates_what_the_features_separate():
         fit_instance_model(rows[:50], [1] * 50, 50)
 
 
+def _own_map(mask, **settings) -> HMADetector:
+    """The detector over the oracle network, returning the image's own map: the oracle gives its mask
+    whatever the input, so the default mean with the mirror image's map (``mirror_map``) would mix
+    the mask with its mirror image; tests/test_mirror_map.py tests that mean."""
+    return HMADetector.with_backend(OracleBackend(mask), mirror_map="never", **settings)
+
+
 def test_the_detector_keeps_or_drops_by_the_model_and_scores_with_it():
     img, mask, _ = rendered("circle", center=(121.3, 133.6), radius=26.0, angle=0.5)
-    rules = HMADetector.with_backend(OracleBackend(mask)).detect(img).detections
+    rules = _own_map(mask).detect(img).detections
     assert len(rules) == 1 and rules[0].score > 0.99  # the rules' score: mean P
     keep = _model(0.0, verified=2.0)  # P = 1 / (1 + exp(-2)) for a verified centre
-    kept = HMADetector.with_backend(OracleBackend(mask), instances=keep).detect(img).detections
+    kept = _own_map(mask, instances=keep).detect(img).detections
     assert len(kept) == 1 and kept[0].score == pytest.approx(1.0 / (1.0 + math.exp(-2.0)))
     assert (kept[0].x, kept[0].y, kept[0].type) == (rules[0].x, rules[0].y, rules[0].type)
     drop = _model(-1.0, verified=0.5)  # P = 0.38 < 0.5
-    res = HMADetector.with_backend(OracleBackend(mask), instances=drop).detect(img)
+    res = _own_map(mask, instances=drop).detect(img)
     assert res.detections == []
     assert res.probability[mask > 0].mean() > 0.95  # the network is sure: its map stays
     # a cut of the caller's beats the stored one; the setting "none" ignores the model
-    assert len(HMADetector.with_backend(OracleBackend(mask), instances=drop,
-                                        instance_threshold=0.3).detect(img).detections) == 1
-    assert len(HMADetector.with_backend(OracleBackend(mask), instances=drop,
-                                        instance_model="none").detect(img).detections) == 1
+    assert len(_own_map(mask, instances=drop, instance_threshold=0.3).detect(img).detections) == 1
+    assert len(_own_map(mask, instances=drop, instance_model="none").detect(img).detections) == 1
 
 
 def test_with_a_model_an_unverified_seed_is_judged_instead_of_dropped():
@@ -240,14 +245,14 @@ def test_with_classical_markers_a_blob_no_marker_comes_from_stays_only_where_one
     sure = mask.astype(np.float32).copy()
     sure[150:190, 20:60] = 1.0
     keep, drop = _model(5.0), _model(-5.0)
-    alone = HMADetector.with_backend(OracleBackend(sure), instances=keep).detect(img)
+    alone = _own_map(sure, instances=keep).detect(img)
     assert len(alone.detections) == 1 and alone.probability[170, 40] > 0.9
-    union = HMADetector.with_backend(OracleBackend(sure), instances=keep, classical_markers=True).detect(img)
+    union = _own_map(sure, instances=keep, classical_markers=True).detect(img)
     assert len(union.detections) == 1 and union.probability[170, 40] < 0.01
     cx, cy = round(first[0]), round(first[1])
     assert union.probability[cy, cx] > 0.9
     # the instance model drops the marker's blob too: the classical marker on it keeps it in the map
-    dropped = HMADetector.with_backend(OracleBackend(sure), instances=drop, classical_markers=True).detect(img)
+    dropped = _own_map(sure, instances=drop, classical_markers=True).detect(img)
     assert dropped.probability[170, 40] < 0.01 and dropped.probability[cy, cx] > 0.9
     assert [round(d.x) for d in dropped.detections] == [round(first[0])]
 
