@@ -202,9 +202,9 @@ class HMASettings:
         ``small_scales``, up to 1024 px, where the second network pass costs least), "always" or
         "never". It doubles the network time on those images; on the train-split dev sets 808 /
         909 / 1111 / 1212 pixel IoU moved by +0.0018 / +0.0047 / +0.0001 / +0.0019, and on the
-        fresh test-split sets 9700 / 9800, generated after that choice was written down
-        (2026-11-28), by +0.0020 / +0.0029 (pixel F1 0.9516 -> 0.9526, 0.9650 -> 0.9666), the
-        same markers.
+        fresh test-split sets 9700 / 9800, generated after the rule for this choice was written
+        down (2026-11-28, stop 47), by +0.0020 / +0.0029 (pixel F1 0.9516 -> 0.9526, 0.9650 ->
+        0.9666), the same markers.
     One torch thread per detector because cpdetect parallelises over images (``--workers``): torch's
     multi-threaded kernels on an oversubscribed CPU ran 20x slower here (13.7 against 0.71 s per
     megapixel with one other busy process on 2 cores). OpenCV's threads share a busy CPU gracefully
