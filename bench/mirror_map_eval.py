@@ -23,16 +23,13 @@ RESULTS = Path(__file__).parent / "results" / "mirror_map_eval.json"
 
 
 def _figures(c) -> dict:
-    """``PixelCounts.metrics()`` (None where undefined: no pixels) with the pixel counts beside them."""
-    m = {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in c.metrics().items()}
-    return {**m, "tp": c.tp, "fp": c.fp, "fn": c.fn}
+    """``PixelCounts.metrics()`` with the pixel counts beside them (NaN, where undefined, made None
+    by the caller)."""
+    return {**c.metrics(), "tp": c.tp, "fp": c.fp, "fn": c.fn}
 
 
-def _safe(obj):
-    """NaN (undefined: no markers) as None, for JSON."""
-    if isinstance(obj, dict):
-        return {k: _safe(v) for k, v in obj.items()}
-    return None if isinstance(obj, float) and math.isnan(obj) else obj
+def _fmt(v) -> str:
+    return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.4f}"
 
 
 def main(argv=None) -> int:
@@ -46,7 +43,7 @@ def main(argv=None) -> int:
     from cpdetect.dataset import load_dataset, read_mask
     from cpdetect.detector import as_gray_uint8, get_detector
     from cpdetect.errors import InputError
-    from cpdetect.evaluate import PixelCounts, score_image, summarize
+    from cpdetect.evaluate import PixelCounts, _json_safe, score_image, summarize
     from cpdetect.fileio import write_json_atomic
     from cpdetect.imageio import read_image
     from cpdetect.types import DetectionResult
@@ -85,28 +82,25 @@ def main(argv=None) -> int:
                 at = DetectionResult(detections=res.detections, image_size=(w, h), probability=prob, seconds=0.0)
                 counts[name].add(at.probability_at(w, h), truth)
             if (k + 1) % 50 == 0:
-                print(f"{k + 1}/{len(items)}", {n: round(_figures(c)["iou"], 4) for n, c in counts.items()},
+                print(f"{k + 1}/{len(items)}", {n: _fmt(c.metrics()["iou"]) for n, c in counts.items()},
                       file=sys.stderr, flush=True)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    figures = {n: _figures(c) for n, c in counts.items()}
+    figures = _json_safe({n: _figures(c) for n, c in counts.items()})
     iou = [figures[n]["iou"] for n in ("never", "small")]
     markers = summarize(records, detector="hma")
     instances = {k: markers[k] for k in ("markers", "tp", "fp", "fn", "precision", "recall", "f1",
                                          "centre_error_px", "type_accuracy", "centre_visible")}
     report = {"dataset": str(ds.root), "images": len(items), "mirror_map": figures,
-              "iou_change": None if None in iou else iou[1] - iou[0], "instances": _safe(instances)}
+              "iou_change": None if None in iou else iou[1] - iou[0], "instances": _json_safe(instances)}
     write_json_atomic(args.out, report)
-    def fmt(v):
-        return "n/a" if v is None else f"{v:.4f}"
-
     for n, f in figures.items():
-        print(f"mirror_map={n:5s}  pixel IoU {fmt(f['iou'])}  pixel F1 {fmt(f['f1'])}  "
+        print(f"mirror_map={n:5s}  pixel IoU {_fmt(f['iou'])}  pixel F1 {_fmt(f['f1'])}  "
               f"false px {f['fp']}  missed px {f['fn']}")
     i, c = report["instances"], report["instances"]["centre_error_px"]
-    print(f"markers (either way): found {i['tp']} of {i['markers']}, false {i['fp']}, instance F1 {fmt(i['f1'])}, "
-          f"centre mean {fmt(c['mean'])} px, p95 {fmt(c['p95'])}, type {fmt(i['type_accuracy'])}")
+    print(f"markers (either way): found {i['tp']} of {i['markers']}, false {i['fp']}, instance F1 {_fmt(i['f1'])}, "
+          f"centre mean {_fmt(c['mean'])} px, p95 {_fmt(c['p95'])}, type {_fmt(i['type_accuracy'])}")
     return 0
 
 
