@@ -1,0 +1,48 @@
+"""bench/hma_miss_stages.py: the stage it names for a missed marker is the detector's own decision."""
+from __future__ import annotations
+
+import importlib.util
+import math
+from pathlib import Path
+
+from learned.adapter import HMADetector
+from test_hma_instances import _model, _two_markers
+from test_learned_detector import OracleBackend
+
+_spec = importlib.util.spec_from_file_location(
+    "hma_miss_stages", Path(__file__).resolve().parents[1] / "bench" / "hma_miss_stages.py")
+stages = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(stages)
+
+
+def _stages(det, img):
+    pm = det.probability(img)
+    blobs, labels = det.candidates(img, pm.prob, pm.factor)
+    return lambda x, y, r: stages.stage_of(det, img, blobs, labels, pm.factor, {"x": x, "y": y, "radius_px": r})
+
+
+def test_a_found_marker_is_kept_and_one_without_a_blob_has_no_blob():
+    img, mask, (first, second) = _two_markers()  # the network's map shows the first marker only
+    det = HMADetector.with_backend(OracleBackend(mask), instances=_model(3.0), mirror_map="never")
+    found = det.detect(img).detections
+    assert len(found) == 1 and math.hypot(found[0].x - first[0], found[0].y - first[1]) < 0.1
+    stage = _stages(det, img)
+    kept = stage(*first, 22.0)
+    assert kept["stage"] == "kept" and kept["centre_offset_px"] < 0.1 and kept["blob_mean_p"] > 0.9
+    assert stage(*second, 24.0)["stage"] == "no blob"
+
+
+def test_the_instance_models_drop_is_named():
+    img, mask, (first, _) = _two_markers()
+    det = HMADetector.with_backend(OracleBackend(mask), instances=_model(-5.0), mirror_map="never")
+    assert det.detect(img).detections == []
+    got = _stages(det, img)(*first, 22.0)
+    assert got["stage"] == "instance model" and got["instance_p"] < 0.01
+
+
+def test_a_blob_whose_centre_is_elsewhere_is_named():
+    img, mask, (first, _) = _two_markers()
+    det = HMADetector.with_backend(OracleBackend(mask), instances=_model(3.0), mirror_map="never")
+    # a true marker said to lie 6 px from the centre the blob yields, still on the blob
+    got = _stages(det, img)(first[0] + 6.0, first[1], 22.0)
+    assert got["stage"] == "centre on another corner" and 5.9 < got["centre_offset_px"] < 6.1
