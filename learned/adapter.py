@@ -41,6 +41,7 @@ import dataclasses
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -205,6 +206,13 @@ class HMASettings:
         fresh test-split sets 9700 / 9800, generated after the rule for this choice was written
         down (2026-11-28, stop 47), by +0.0020 / +0.0029 (pixel F1 0.9516 -> 0.9526, 0.9650 ->
         0.9666), the same markers.
+    colour_centres: for a colour image (BGR array, or a path, then read in colour), the blobs of the
+        network's map that the network is sure of (mean P at least ``clear_rejected_below``) and that
+        hold no marker of the gray image are looked at again on the paint image (the max of the
+        channels, :func:`cpdetect.imageio.paint_image`): centres, instance decision and type as on
+        the gray image (:meth:`HMADetector._colour_instances`). The network sees gray, and finds a
+        marker painted in colours of one luminance (red on grey) by its shape, but in gray there is
+        no checker to put its centre on. ``extras["colour_found"]`` counts the markers it adds.
     One torch thread per detector because cpdetect parallelises over images (``--workers``): torch's
     multi-threaded kernels on an oversubscribed CPU ran 20x slower here (13.7 against 0.71 s per
     megapixel with one other busy process on 2 cores). OpenCV's threads share a busy CPU gracefully
@@ -249,6 +257,7 @@ class HMASettings:
     outline_window: float = 1.0
     model_fit: bool = True
     mirror_map: str = "small"
+    colour_centres: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "scales", tuple(float(s) for s in self.scales))
@@ -445,6 +454,17 @@ def _network_support(network: np.ndarray, theirs: np.ndarray | None, f: float, c
     return float(network[y0:y1, x0:x1][area].mean())
 
 
+def _paint_of(image: Any) -> np.ndarray | None:
+    """The paint image (:func:`cpdetect.imageio.paint_image`) of a BGR(A) array or of an image file
+    (read again, in colour); None for a gray one."""
+    from cpdetect.imageio import paint_image, read_image
+
+    a = read_image(image) if isinstance(image, (str, os.PathLike)) else np.asarray(image)
+    if a.ndim != 3 or a.shape[2] < 3:
+        return None
+    return paint_image(np.ascontiguousarray(a[:, :, :3]))
+
+
 def _map_pixel(x: float, y: float, f: float, shape: tuple[int, int]) -> tuple[int, int]:
     """(column, row) of the map pixel (``f`` per image pixel, map of ``shape`` (rows, columns))
     nearest to the image point (x, y), clipped into the map."""
@@ -522,6 +542,7 @@ class HMADetector:
         s = self.settings
         classical = self._classical(image, s.classical_markers) if s.classical_seeds or s.classical_markers else None
         seeds = classical.detections if s.classical_seeds else None
+        source = image
         if isinstance(image, (str, os.PathLike)):
             from cpdetect.imageio import read_image
 
@@ -536,6 +557,12 @@ class HMADetector:
         pm = self.probability(gray)
         witnesses = classical.detections if s.classical_markers else None
         dets, prob = self._instances(gray, pm.prob, pm.factor, seeds, witnesses)
+        colour_found = 0
+        if s.colour_centres:
+            n0 = len(dets)
+            dets, prob = self._colour_instances(lambda: _paint_of(source), pm.prob, pm.factor, dets, prob, seeds,
+                                                witnesses)
+            colour_found = len(dets) - n0
         mirrored = self.mirrors(w, h)
         if mirrored:
             mean = mirrored_mean(gray, pm.prob, lambda g: self.probability(g).prob)
@@ -546,7 +573,47 @@ class HMADetector:
         return DetectionResult(detections=dets, image_size=(w, h), probability=prob,
                                seconds=time.perf_counter() - t0,
                                extras={"backend": self.backend.name, "scales": list(self.scales_for(w, h)),
-                                       "probability_factor": pm.factor, "mirrored_map": mirrored})
+                                       "probability_factor": pm.factor, "mirrored_map": mirrored,
+                                       "colour_found": colour_found})
+
+    def _colour_instances(self, paint_of: Callable[[], np.ndarray | None], network: np.ndarray, f: float,
+                          dets: list[MarkerDetection], prob: np.ndarray, seeds: list[MarkerDetection] | None,
+                          witnesses: list[MarkerDetection] | None) -> tuple[list[MarkerDetection], np.ndarray]:
+        """``dets`` (from the gray image) plus the markers found on the paint image (``paint_of()``, the
+        max of the channels, :func:`_paint_of`; None for a gray image) on the blobs of the network's map
+        ``network`` that hold none of them and that the network is sure of (mean P at least
+        ``clear_rejected_below``): centres, instance decision and type as on the gray image, but on
+        paint, where a marker painted in colours of one luminance shows its checker. ``prob`` (the
+        returned map) gets the network's blobs of the added markers back."""
+        s = self.settings
+        n, labels, stats, _ = cv2.connectedComponentsWithStats((network >= s.threshold).astype(np.uint8),
+                                                               connectivity=8)
+        if n <= 1:
+            return dets, prob
+        held = np.zeros(n, bool)
+        for d in dets:
+            c, r = _map_pixel(d.x, d.y, f, labels.shape)
+            held[labels[r, c]] = True
+        mean_p = np.bincount(labels.ravel(), weights=network.ravel(), minlength=n) \
+            / np.maximum(stats[:, cv2.CC_STAT_AREA], 1)
+        look = ~held & (mean_p >= s.clear_rejected_below)
+        look[0] = False
+        if not look.any():
+            return dets, prob
+        paint = paint_of()  # decoded only now: most images have no such blob
+        if paint is None:
+            return dets, prob
+        more, _ = self._instances(paint, np.where(look[labels], network, np.float32(0.0)), f, seeds, witnesses)
+        added = [m for m in more
+                 if all(math.hypot(m.x - d.x, m.y - d.y) > max(1.0, min(m.radius_px, d.radius_px) / 3.0) for d in dets)]
+        if not added:
+            return dets, prob
+        back = np.zeros(n, bool)
+        for m in added:
+            c, r = _map_pixel(m.x, m.y, f, labels.shape)
+            back[labels[r, c]] = True
+        back[0] = False
+        return dets + added, np.where(back[labels], np.maximum(prob, network), prob).astype(np.float32, copy=False)
 
     # ------------------------------------------------------------------
     def candidates(self, gray: np.ndarray, prob: np.ndarray, f: float,
