@@ -14,29 +14,20 @@ eval`` costs, and the instance stage on the paint image for those blobs.
 """
 from __future__ import annotations
 
-import argparse
-import math
 import sys
 from pathlib import Path
+
+from dataset_bench import fmt, load_dataset_or_none, parse_args
 
 RESULTS = Path(__file__).parent / "results" / "colour_centres_eval.json"
 KEYS = ("markers", "tp", "fp", "fn", "precision", "recall", "f1", "centre_error_px", "type_accuracy",
         "centre_visible")
 
 
-def _fmt(v) -> str:
-    return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.4f}"
-
-
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("dataset")
-    ap.add_argument("--limit", type=int, help="the first N images only")
-    ap.add_argument("--threads", type=int, default=1, help="network threads (1: two runs share 2 cores)")
-    ap.add_argument("--out", default=str(RESULTS))
-    args = ap.parse_args(argv)
+    args = parse_args(__doc__, RESULTS, argv)
 
-    from cpdetect.dataset import load_dataset, read_mask
+    from cpdetect.dataset import read_mask
     from cpdetect.detector import get_detector
     from cpdetect.errors import InputError
     from cpdetect.evaluate import PixelCounts, _json_safe, score_image, summarize
@@ -44,10 +35,8 @@ def main(argv=None) -> int:
     from cpdetect.imageio import read_image
     from cpdetect.types import DetectionResult
 
-    try:
-        ds = load_dataset(args.dataset)
-    except (InputError, OSError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    ds = load_dataset_or_none(args.dataset)
+    if ds is None:
         return 2
     det = get_detector("hma", threads=args.threads, colour_centres=True)
     step = det._colour_instances
@@ -106,10 +95,10 @@ def main(argv=None) -> int:
         i = report[n]
         px = i["pixel"] or {}
         print(f"colour_centres={n:3s} found {i['tp']} of {i['markers']}, false {i['fp']}, instance F1 "
-              f"{_fmt(i['f1'])}, centre mean {_fmt(i['centre_error_px']['mean'])} px, p95 "
-              f"{_fmt(i['centre_error_px']['p95'])}, type {_fmt(i['type_accuracy'])}, pixel IoU "
-              f"{_fmt(px.get('iou'))}, F1 {_fmt(px.get('f1'))}")
-    print(f"seconds per megapixel (with the step) {_fmt(report['on']['seconds_per_megapixel'])}")
+              f"{fmt(i['f1'])}, centre mean {fmt(i['centre_error_px']['mean'])} px, p95 "
+              f"{fmt(i['centre_error_px']['p95'])}, type {fmt(i['type_accuracy'])}, pixel IoU "
+              f"{fmt(px.get('iou'))}, F1 {fmt(px.get('f1'))}")
+    print(f"seconds per megapixel (with the step) {fmt(report['on']['seconds_per_megapixel'])}")
     return 0
 
 

@@ -14,10 +14,10 @@ once. Costs two network passes per image (about 8 s per 640 x 480 image with two
 """
 from __future__ import annotations
 
-import argparse
-import math
 import sys
 from pathlib import Path
+
+from dataset_bench import fmt, load_dataset_or_none, parse_args
 
 RESULTS = Path(__file__).parent / "results" / "mirror_map_eval.json"
 
@@ -28,19 +28,10 @@ def _figures(c) -> dict:
     return {**c.metrics(), "tp": c.tp, "fp": c.fp, "fn": c.fn}
 
 
-def _fmt(v) -> str:
-    return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.4f}"
-
-
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("dataset")
-    ap.add_argument("--limit", type=int, help="the first N images only")
-    ap.add_argument("--threads", type=int, default=1, help="network threads (1: two runs share 2 cores)")
-    ap.add_argument("--out", default=str(RESULTS))
-    args = ap.parse_args(argv)
+    args = parse_args(__doc__, RESULTS, argv)
 
-    from cpdetect.dataset import load_dataset, read_mask
+    from cpdetect.dataset import read_mask
     from cpdetect.detector import as_gray_uint8, get_detector
     from cpdetect.errors import InputError
     from cpdetect.evaluate import PixelCounts, _json_safe, score_image, summarize
@@ -49,10 +40,8 @@ def main(argv=None) -> int:
     from cpdetect.types import DetectionResult
     from learned.mirror_map import keep_blobs_of, mirrored_mean
 
-    try:
-        ds = load_dataset(args.dataset)
-    except (InputError, OSError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    ds = load_dataset_or_none(args.dataset)
+    if ds is None:
         return 2
     det = get_detector("hma", threads=args.threads, mirror_map="never")
     network = det.probability
@@ -82,7 +71,7 @@ def main(argv=None) -> int:
                 at = DetectionResult(detections=res.detections, image_size=(w, h), probability=prob, seconds=0.0)
                 counts[name].add(at.probability_at(w, h), truth)
             if (k + 1) % 50 == 0:
-                print(f"{k + 1}/{len(items)}", {n: _fmt(c.metrics()["iou"]) for n, c in counts.items()},
+                print(f"{k + 1}/{len(items)}", {n: fmt(c.metrics()["iou"]) for n, c in counts.items()},
                       file=sys.stderr, flush=True)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -96,11 +85,11 @@ def main(argv=None) -> int:
               "iou_change": None if None in iou else iou[1] - iou[0], "instances": _json_safe(instances)}
     write_json_atomic(args.out, report)
     for n, f in figures.items():
-        print(f"mirror_map={n:5s}  pixel IoU {_fmt(f['iou'])}  pixel F1 {_fmt(f['f1'])}  "
+        print(f"mirror_map={n:5s}  pixel IoU {fmt(f['iou'])}  pixel F1 {fmt(f['f1'])}  "
               f"false px {f['fp']}  missed px {f['fn']}")
     i, c = report["instances"], report["instances"]["centre_error_px"]
-    print(f"markers (either way): found {i['tp']} of {i['markers']}, false {i['fp']}, instance F1 {_fmt(i['f1'])}, "
-          f"centre mean {_fmt(c['mean'])} px, p95 {_fmt(c['p95'])}, type {_fmt(i['type_accuracy'])}")
+    print(f"markers (either way): found {i['tp']} of {i['markers']}, false {i['fp']}, instance F1 {fmt(i['f1'])}, "
+          f"centre mean {fmt(c['mean'])} px, p95 {fmt(c['p95'])}, type {fmt(i['type_accuracy'])}")
     return 0
 
 
