@@ -5,6 +5,7 @@ import math
 
 import cv2
 import numpy as np
+import pytest
 
 from learned.adapter import HMADetector
 from test_learned_detector import OracleBackend, SoftBackend, rendered
@@ -30,9 +31,15 @@ def test_a_marker_without_gray_contrast_is_found_on_the_paint_image(tmp_path):
     bgr, mask = _painted("circle")
     gray = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
     assert np.ptp(gray[mask > 0]) < 12  # nothing to refine in gray
-    plain = HMADetector.with_backend(OracleBackend(mask), mirror_map="never").detect(bgr)
+    plain = HMADetector.with_backend(OracleBackend(mask), mirror_map="never", colour_centres=False).detect(bgr)
     assert plain.detections == [] and plain.extras["colour_found"] == 0
-    det = HMADetector.with_backend(OracleBackend(mask), mirror_map="never", colour_centres=True)
+    det = HMADetector.with_backend(OracleBackend(mask), mirror_map="never")
+    assert det.settings.colour_centres == "small"  # the default since stop 48: this 256 x 256 image is small
+    assert det.colour_centres_for(256, 256) and not det.colour_centres_for(8192, 5460)
+    assert HMADetector.with_backend(OracleBackend(mask), colour_centres=True).colour_centres_for(8192, 5460)
+    assert HMADetector.with_backend(OracleBackend(mask), colour_centres=False).settings.colour_centres == "never"
+    with pytest.raises(ValueError, match="colour_centres must be"):
+        HMADetector.with_backend(OracleBackend(mask), colour_centres="yes")
     res = det.detect(bgr)
     assert res.extras["colour_found"] == 1 and len(res.detections) == 1
     d = res.detections[0]
@@ -52,7 +59,7 @@ def test_a_marker_without_gray_contrast_is_found_on_the_paint_image(tmp_path):
 def test_markers_found_in_gray_are_not_looked_at_again():
     gray, mask, _ = rendered("square", center=CENTRE, radius=26.0, angle=0.5)
     bgr = np.repeat(gray[..., None], 3, axis=2)
-    plain = HMADetector.with_backend(OracleBackend(mask), mirror_map="never").detect(bgr)
+    plain = HMADetector.with_backend(OracleBackend(mask), mirror_map="never", colour_centres=False).detect(bgr)
     res = HMADetector.with_backend(OracleBackend(mask), mirror_map="never", colour_centres=True).detect(bgr)
     assert res.extras["colour_found"] == 0 and res.detections == plain.detections and len(plain.detections) == 1
 
