@@ -538,17 +538,19 @@ class HMADetector:
     def mirrors(self, width: int, height: int) -> bool:
         """Whether the returned map of an image of this size is the mean with its mirror image's
         (``mirror_map``)."""
-        s = self.settings
-        if s.mirror_map != "small":
-            return s.mirror_map == "always"
-        return s.small_scales is not None and self.scales_for(width, height) == s.small_scales
+        return self._applies(self.settings.mirror_map, width, height)
 
     def colour_centres_for(self, width: int, height: int) -> bool:
         """Whether blobs without a marker are looked at again on the paint image for an image of this
         size (``colour_centres``: "small", the images seen at ``small_scales``)."""
+        return self._applies(self.settings.colour_centres, width, height)
+
+    def _applies(self, mode: str, width: int, height: int) -> bool:
+        """A step set to "always", "never" or "small" (images seen at ``small_scales``), for an image
+        of this size."""
         s = self.settings
-        if s.colour_centres != "small":
-            return s.colour_centres == "always"
+        if mode != "small":
+            return mode == "always"
         return s.small_scales is not None and self.scales_for(width, height) == s.small_scales
 
     def probability(self, gray: np.ndarray):
