@@ -5,7 +5,9 @@ the pattern's second angular harmonic is as strong on a small ring around the ce
 body, up to the blur. Shapes that only look like a marker from farther out do not: two dark blobs
 diagonal to each other with a bright gap between them (holes, stains), a window's panes around a
 bright mullion cross. This module measures that ratio, with the small ring's radius scaled to the
-blur of the marker's own sector edges, so that a blurred X-corner is not taken for a gap.
+blur of the marker's own sector edges, so that a blurred X-corner is not taken for a gap; and the
+grey at the centre against the sectors' mean (:func:`centre_level_offset`), which a gap too narrow
+for the ring, a grid's grout crossing or a checker corner beside an occluder gets wrong.
 
 Pixel coordinates follow OpenCV (the centre of the top-left pixel is (0, 0)); radii are in pixels of
 the image given.
@@ -90,5 +92,31 @@ def centre_reach(gray: np.ndarray, x: float, y: float, radius: float) -> float:
     return second_harmonic(gray, x, y, small) / max(outer, 1e-6)
 
 
-__all__ = ["ring_samples", "second_harmonic", "edge_blur_px", "centre_reach", "INNER_RADIUS_MIN_PX",
-           "INNER_RADIUS_BLURS", "CENTRE_REACH_MIN"]
+def centre_level_offset(gray: np.ndarray, x: float, y: float, levels: tuple[float, float], dark_share: float,
+                        sigma_px: float = 1.0) -> float:
+    """How far the grey at the centre (x, y) is from the one an X-corner of those sectors has there,
+    in units of the contrast: (G - (D s + B (1 - s))) / (B - D), with G the Gaussian-weighted mean
+    (``sigma_px``) of ``gray`` around (x, y), D, B the dark and bright ``levels`` and s the share of
+    the full turn the dark sectors take (``dark_share``).
+
+    Straight sector edges through one point make the pattern a cone (its grey depends only on the
+    direction), and any isotropic blur, the weighting here included, leaves the grey at the apex equal
+    to the pattern's mean over the directions: about 0 on a marker whatever its blur or tilt (a
+    perspective view keeps lines through the centre straight). Two dark blobs beside a bright gap
+    give up to +0.5, two bright ones beside a dark gap down to -0.5. NaN when the window leaves the
+    image or the levels do not differ."""
+    D, B = float(levels[0]), float(levels[1])
+    h, w = gray.shape[:2]
+    n = int(math.ceil(3.0 * sigma_px))
+    ix, iy = int(math.floor(x)), int(math.floor(y))
+    if not (B - D > 1e-6 and ix - n >= 0 and iy - n >= 0 and ix + n + 1 < w and iy + n + 1 < h):
+        return math.nan
+    win = np.asarray(gray[iy - n:iy + n + 2, ix - n:ix + n + 2], np.float64)
+    gx = np.exp(-0.5 * ((np.arange(ix - n, ix + n + 2) - x) / sigma_px) ** 2)
+    gy = np.exp(-0.5 * ((np.arange(iy - n, iy + n + 2) - y) / sigma_px) ** 2)
+    g = float(gy @ win @ gx) / float(gy.sum() * gx.sum())
+    return (g - (D * dark_share + B * (1.0 - dark_share))) / (B - D)
+
+
+__all__ = ["ring_samples", "second_harmonic", "edge_blur_px", "centre_reach", "centre_level_offset",
+           "INNER_RADIUS_MIN_PX", "INNER_RADIUS_BLURS", "CENTRE_REACH_MIN"]
