@@ -254,6 +254,10 @@ class ClassicalSettings:
             raise ValueError("colour_min_score must be in [0, 1]")
         if not 0.0 <= self.retry_score <= 1.0:
             raise ValueError("retry_score must be in [0, 1] (1: off)")
+        if self.max_centre_offset is not None and not self.max_centre_offset > 0:
+            raise ValueError("max_centre_offset must be positive (in units of the contrast) or null (off)")
+        if not self.centre_offset_max_blur_px > 0:
+            raise ValueError("centre_offset_max_blur_px must be positive (pixels)")
         if not 0.0 <= self.outline_window <= 2.0:
             raise ValueError("outline_window must be in [0, 2] (0: off)")
 

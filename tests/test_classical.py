@@ -293,6 +293,12 @@ def test_unknown_setting_is_refused():
     for bad in (0, -1):  # -1 was taken, and sliced the last candidate off each level's list
         with pytest.raises(UsageError, match="max_candidates_per_level must be >= 1"):
             get_detector("classical", max_candidates_per_level=bad)
+    for bad in (0, -0.2):  # a cut of 0 or less would drop every marker
+        with pytest.raises(UsageError, match="max_centre_offset must be positive"):
+            get_detector("classical", max_centre_offset=bad)
+    with pytest.raises(UsageError, match="centre_offset_max_blur_px must be positive"):
+        get_detector("classical", centre_offset_max_blur_px=0)
+    assert get_detector("classical", max_centre_offset=None).settings.max_centre_offset is None
 
 
 def test_retry_keeps_the_best_ring_start():
