@@ -5,7 +5,7 @@ detector runs once as ``cpdetect eval --detector hma`` runs it (on the BGR image
 ``colour_centres=true``: the markers of the gray image, then those found on the paint image (max of
 the channels) on the blobs the network is sure of that hold none of them
 (:meth:`learned.adapter.HMADetector._colour_instances`). The markers and the returned map before that
-step are what the default (``colour_centres=false``) reports, so both are scored from the same run,
+step are what ``colour_centres=never`` reports (the step off), so both are scored from the same run,
 against the same truth: instance F1, recall, false markers, centre error and type
 (:func:`cpdetect.evaluate.summarize`), and pixel IoU / F1 of the returned maps. Costs what ``cpdetect
 eval`` costs, and the instance stage on the paint image for those blobs.
@@ -42,7 +42,7 @@ def main(argv=None) -> int:
     step = det._colour_instances
     before = {}
 
-    def colour_instances(paint, network, f, dets, prob, *rest):  # what the default would have returned
+    def colour_instances(paint, network, f, dets, prob, *rest):  # what the step off would have returned
         before["dets"], before["prob"] = list(dets), prob
         return step(paint, network, f, dets, prob, *rest)
 
