@@ -981,3 +981,67 @@ def test_the_grey_at_the_centre_rejects_holes_and_a_tile_corner(index, seed, fal
     for t in markers:
         m = near(found, t.x, t.y)
         assert len(m) == 1 and m[0].type == t.type and math.hypot(m[0].x - t.x, m[0].y - t.y) < 0.1
+
+
+def test_robust_ellipse_fit_drops_a_stray_boundary_point():
+    # two opposite quarter arcs of a circle of radius 10 about (50, 40) (the boundary of a circle
+    # marker's dark sectors) and one ray that ended 3 px from the centre
+    from cpdetect.classical import _ellipse_residual, _ellipse_residual_robust
+
+    t = np.concatenate([np.linspace(0.2, 1.37, 12), np.linspace(0.2, 1.37, 12) + np.pi])
+    arcs = np.column_stack([50 + 10 * np.cos(t), 40 + 10 * np.sin(t)])
+    clean_e, _ = _ellipse_residual(arcs)
+    assert clean_e < 1e-3 and _ellipse_residual_robust(arcs)[0] < 1e-3
+    pts = np.vstack([arcs, [[52.0, 42.2]]])
+    plain_e, _ = _ellipse_residual(pts)
+    e, ((cx, cy), (a, b), _) = _ellipse_residual_robust(pts)
+    assert plain_e > 1.0
+    assert e < 1e-3
+    assert math.hypot(cx - 50, cy - 40) < 1e-2 and abs(a - 20) < 2e-2 and abs(b - 20) < 2e-2
+
+
+def test_equal_area_radius_of_a_square():
+    from cpdetect.classical import _equal_area_radius
+
+    square = np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 4.0], [0.0, 4.0]])
+    assert _equal_area_radius(square) == pytest.approx(4.0 / math.sqrt(math.pi), rel=1e-12)
+    assert _equal_area_radius(square[::-1]) == pytest.approx(4.0 / math.sqrt(math.pi), rel=1e-12)
+
+
+def test_outline_ratio_setting_is_checked():
+    from cpdetect.errors import UsageError
+
+    for bad in (1.0, 0.5, 0, -2):
+        with pytest.raises(UsageError, match="outline_r0_ratio must be over 1"):
+            get_detector("classical", outline_r0_ratio=bad)
+    assert get_detector("classical", outline_r0_ratio=None).settings.outline_r0_ratio is None
+    with pytest.raises(UsageError, match="robust_ellipse needs outline_r0_ratio"):
+        get_detector("classical", robust_ellipse=True)
+
+
+@pytest.mark.parametrize("index, seed, which", [
+    # a circle of radius 11 under 2.1 px of blur in a light margin: two rays ending at its dark
+    # sectors' inner corners make their ellipse fit fail and two lines fit, whose square outline
+    # closes 3 px from the centre; the margin's outline (radius 19, a diagonal) was the one left
+    (21, 1111, 1),
+    # a circle of radius 15 under 1.7 px of blur in a light margin: one such ray, and "outline does
+    # not fit (circle)"; the margin's square outline (radius 33) was left
+    (113, 1212, 0),
+    # a diagonal marker of radius 8.6: its dark sectors' ellipse (radius 5.1 from r0 7.2) and a
+    # square outline (13.2) were both built from the same points; the diagonal outline agrees
+    (388, 1212, 1),
+])
+def test_outline_that_disagrees_with_its_boundary_points_gives_way(index, seed, which):
+    # train-split generated images; the type follows the outline that wins
+    img, markers = generated_photo(index, seed)
+    t = markers[which]
+
+    def near(**settings):
+        dets = ClassicalDetector(**settings).detect(img).detections
+        return [m for m in dets if math.hypot(m.x - t.x, m.y - t.y) < 3]
+
+    (old,) = near(outline_r0_ratio=None, robust_ellipse=False)
+    assert old.type != t.type and abs(old.radius_px / t.radius_px - 1) > 0.3
+    (new,) = near(outline_r0_ratio=1.5, robust_ellipse=True)
+    assert new.type == t.type and abs(new.radius_px / t.radius_px - 1) < 0.25
+    assert math.hypot(new.x - t.x, new.y - t.y) < 0.2
