@@ -22,8 +22,6 @@ image's own map).
 """
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import sys
 from collections import Counter
@@ -77,39 +75,25 @@ def stage_of(det, gray, blobs, labels, f: float, truth) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("eval_json", help="metrics JSON of `cpdetect eval DIR --detector hma --out F`")
+    from eval_misses import arguments, images_with_misses, read_eval
+
+    ap = arguments(__doc__, "hma", RESULTS)
     ap.add_argument("--threads", type=int, default=2, help="network threads")
-    ap.add_argument("--out", default=str(RESULTS))
     args = ap.parse_args(argv)
 
-    from cpdetect.dataset import load_dataset
     from cpdetect.errors import InputError
     from cpdetect.fileio import write_json_atomic
     from cpdetect.imageio import read_image
     from learned.adapter import HMADetector, _map_pixel
 
-    try:
-        ev = json.loads(Path(args.eval_json).read_text())
-        if ev.get("detector") != "hma" or "per_image" not in ev or "dataset" not in ev:
-            raise ValueError("not the metrics of `cpdetect eval --detector hma --out F`")
-        ds = load_dataset(ev["dataset"])
-    except FileNotFoundError:
-        print(f"error: {args.eval_json}: file not found", file=sys.stderr)
+    got = read_eval(args.eval_json, "hma")
+    if got is None:
         return 2
-    except (InputError, OSError, ValueError) as exc:
-        print(f"error: {args.eval_json}: {exc}", file=sys.stderr)
-        return 2
-    items = {it.file: it for it in ds.images}
+    ev, ds = got
     det = HMADetector(threads=args.threads)
     rows = []
     try:
-        for rec in ev["per_image"]:
-            if not rec["missed"]:
-                continue
-            item = items.get(rec["file"])
-            if item is None:
-                raise InputError("not in the dataset the metrics name", Path(ev["dataset"]) / rec["file"])
+        for rec, item in images_with_misses(ev, ds):
             gray = read_image(ds.image_path(item), gray=True)
             pm = det.probability(gray)
             blobs, labels = det.candidates(gray, pm.prob, pm.factor)

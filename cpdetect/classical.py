@@ -1684,24 +1684,27 @@ class ClassicalDetector:
     def settings_dict(self) -> dict:
         return asdict(self.settings)
 
-    def detect(self, image: Any) -> DetectionResult:
+    def detect(self, image: Any, trace: list | None = None) -> DetectionResult:
+        """Markers in ``image``. ``trace``: a list that receives one dict per X-corner candidate
+        saying where the scan left it (see :class:`_Scan`; for diagnostics such as
+        bench/classical_miss_stages.py)."""
         t0 = time.perf_counter()
         if isinstance(image, (str, os.PathLike)):
-            res = self._detect_file(image)
+            res = self._detect_file(image, trace)
         else:
-            res = self._detect_gray(*self._from_array(image))
+            res = self._detect_gray(*self._from_array(image), trace=trace)
         res.seconds = time.perf_counter() - t0
         return res
 
-    def _detect_file(self, path) -> DetectionResult:
+    def _detect_file(self, path, trace: list | None = None) -> DetectionResult:
         from .imageio import probe_image, read_image, read_reduced_colour_then_gray
 
         if not self.settings.colour_pass:
-            return self._detect_gray(read_image(path, gray=True), None)
+            return self._detect_gray(read_image(path, gray=True), None, trace=trace)
         info = probe_image(path)
         k = self._search_factor(info.width, info.height)
         if info.format != "jpeg" or k == 1:
-            return self._detect_gray(*self._from_array(read_image(path)))
+            return self._detect_gray(*self._from_array(read_image(path)), trace=trace)
         # a JPEG searched at reduced size decodes at that size directly (libjpeg's DCT scaling: within
         # 0.1 grey level of the area-reduced full image), in colour for the colour pass; the search
         # runs on it while the full-resolution gray image, needed from verification on, decodes
@@ -1714,7 +1717,7 @@ class ClassicalDetector:
         except BaseException:
             full.exception()
             raise
-        return self._detect_gray(full.result(), paint, searched)
+        return self._detect_gray(full.result(), paint, searched, trace=trace)
 
     def _from_array(self, image: Any) -> tuple[np.ndarray, np.ndarray | None]:
         a = np.asarray(image)
@@ -1741,7 +1744,7 @@ class ClassicalDetector:
         return search, pyramid, gray_c, cands
 
     def _detect_gray(self, gray: np.ndarray, paint: np.ndarray | None = None,
-                     searched: tuple | None = None) -> DetectionResult:
+                     searched: tuple | None = None, trace: list | None = None) -> DetectionResult:
         """Detect on ``gray`` (full resolution); ``paint``: the max-of-channels image of a colour
         photo at search resolution (see :func:`paint_image`) for the colour pass, or None;
         ``searched``: :meth:`_search` of the search image when it was made otherwise (else from
@@ -1755,7 +1758,7 @@ class ClassicalDetector:
         # the full image is sampled in place (uint8): no full-size float copy
         levels = _Levels(gray if k > 1 else None, k, pyramid)
         accepted: list[tuple[_Verified, Any]] = []
-        scan = _Scan(gray, k, s, accepted)
+        scan = _Scan(gray, k, s, accepted, trace)
         with ThreadPoolExecutor(1) as pool:
             # the paint image's X-corners are found beside the gray verification (mostly OpenCV
             # and NumPy work, which runs outside the GIL, against mostly Python work)
@@ -1817,10 +1820,19 @@ class ClassicalDetector:
 
 
 class _Scan:
-    """Verifies and refines candidates of one pass, appending to ``accepted`` ((_Verified, sigma))."""
+    """Verifies and refines candidates of one pass, appending to ``accepted`` ((_Verified, sigma)).
 
-    def __init__(self, gray: np.ndarray, k: int, settings: ClassicalSettings, accepted: list):
+    With a ``trace`` list, each candidate adds a dict: ``x``, ``y`` (full-resolution pixels),
+    ``level``, ``contrast``, ``pass`` ("gray" or "colour") and ``stage``, where the scan left it:
+    "prefilter", "unverified" (past ``max_verified``), "beside a found marker", "verify: <reason>",
+    "score" (under the pass's cut; with ``score``), "single saddle", "centre reach", "centre grey",
+    "score after refinement" (the refinement failed and the score, cut by 0.7, fell under) or "kept";
+    verified ones also carry ``score``, ``type`` and ``radius_px``."""
+
+    def __init__(self, gray: np.ndarray, k: int, settings: ClassicalSettings, accepted: list,
+                 trace: list | None = None):
         self.gray, self.k, self.s, self.accepted = gray, k, settings, accepted
+        self.trace = trace
         self.prefiltered = 0
         self.unverified = 0  # candidates past the prefilter left out by max_verified
 
@@ -1842,20 +1854,41 @@ class _Scan:
         # covers them (looking that up candidate by candidate in Python cost 0.07 s on 45 MP images)
         rejected = int((~passed).sum())
         todo = np.nonzero(passed)[0]
+        colour = paint_search is not None
+
+        def note(ci: int, stage: str, v: "_Verified | None" = None) -> None:
+            c = cands[ci]
+            row = {"x": float(cand_xy[ci, 0]), "y": float(cand_xy[ci, 1]), "level": int(c.level),
+                   "contrast": float(c.contrast), "pass": "colour" if colour else "gray", "stage": stage}
+            if v is not None:
+                row.update(score=float(v.score), type=v.type, radius_px=float(v.radius))
+            self.trace.append(row)
+
+        if self.trace is not None:
+            for ci in np.nonzero(~passed)[0]:
+                note(ci, "prefilter")
+            for ci in todo[s.max_verified:]:
+                note(ci, "unverified")
         if len(todo) > s.max_verified:
             self.unverified += len(todo) - s.max_verified
             todo = todo[:s.max_verified]
+        mark = note if self.trace is not None else (lambda *a: None)
         for ci in todo:
             c = cands[ci]
             scale = k * 2 ** c.level
             cx, cy = cand_xy[ci]
             if any(math.hypot(cx - v.x, cy - v.y) < max(0.5 * v.radius, 2.0 * scale) for v, _ in accepted):
+                mark(ci, "beside a found marker")
                 continue
             r_start = max(1.5, 1.5 * scale)
             v = verifier.verify(cx, cy, r_start)
             if not isinstance(v, str) and s.retry_score <= v.score < min_score:
                 v = _retry_ring_starts(verifier, cx, cy, r_start, v)
             if isinstance(v, str) or v.score < min_score:
+                if isinstance(v, str):
+                    mark(ci, "verify: " + v)
+                else:
+                    mark(ci, "score", v)
                 rejected += 1
                 continue
             # the single saddle: no other X-corner of the same checker around it, about as strong
@@ -1875,6 +1908,7 @@ class _Scan:
             if any(verifier.is_xcorner(cand_xy[j, 0], cand_xy[j, 1], r_small, v.levels, axes=axes)
                    for j in near[np.argsort(-cand_c[near])][:8]) \
                     or any(verifier.is_xcorner(a.x, a.y, r_small, v.levels) for a in found):
+                mark(ci, "single saddle", v)
                 rejected += 1
                 continue
             shift = max(2.0 * scale, 0.3 * v.radius)
@@ -1891,13 +1925,16 @@ class _Scan:
                                         model=s.model_fit) or ref
             if ref.ok:
                 if any(math.hypot(ref.x - a.x, ref.y - a.y) < 0.5 * a.radius for a, _ in accepted):
+                    mark(ci, "beside a found marker", v)
                     continue
                 if paint_search is None and centre_reach(gray, ref.x, ref.y, v.radius) < CENTRE_REACH_MIN:
+                    mark(ci, "centre reach", v)
                     rejected += 1
                     continue
                 if paint_search is None and s.max_centre_offset is not None and abs(centre_level_offset(
                         gray, ref.x, ref.y, v.levels, v.dark_share)) > s.max_centre_offset \
                         and edge_blur_px(gray, ref.x, ref.y, v.radius) < s.centre_offset_max_blur_px:
+                    mark(ci, "centre grey", v)
                     rejected += 1
                     continue
                 v = replace(v, x=ref.x, y=ref.y, outline=v.outline + [ref.x - v.x, ref.y - v.y])
@@ -1906,7 +1943,9 @@ class _Scan:
                 sigma = max(0.5 * scale, 0.5)
                 v.score *= 0.7
             if v.score < min_score:
+                mark(ci, "score after refinement", v)
                 continue
+            mark(ci, "kept", v)
             accepted.append((v, sigma))
         return rejected
 

@@ -1,18 +1,14 @@
 """bench/hma_miss_stages.py: the stage it names for a missed marker is the detector's own decision."""
 from __future__ import annotations
 
-import importlib.util
 import math
-from pathlib import Path
 
+from bench_loader import load_bench
 from learned.adapter import HMADetector
 from test_hma_instances import _model, _two_markers
 from test_learned_detector import OracleBackend
 
-_spec = importlib.util.spec_from_file_location(
-    "hma_miss_stages", Path(__file__).resolve().parents[1] / "bench" / "hma_miss_stages.py")
-stages = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(stages)
+stages = load_bench("hma_miss_stages")
 
 
 def _stages(det, img):
