@@ -91,3 +91,17 @@ def test_a_run_on_an_evaluated_set(tmp_path):
     assert rep["missed"] == ev["markers"]
     assert sum(v["missed"] for v in rep["stages"].values()) == rep["missed"]
     assert "kept" not in rep["stages"] and rep["stages"]["score"]["missed"] >= 1
+
+
+def test_candidates_past_the_verification_cap_are_named_unverified():
+    img = marker_image(center=CENTRE, radius=26.0, angle=0.4, marker_type="circle")
+    full: list[dict] = []
+    ClassicalDetector(colour_pass=False).detect(img, trace=full)
+    capped: list[dict] = []
+    res = ClassicalDetector(colour_pass=False, max_verified=1).detect(img, trace=capped)
+    # the same candidates either way; all but the first that passed the prefilter go unverified
+    assert len(capped) == len(full)
+    passed = [t for t in full if t["stage"] != "prefilter"]
+    assert len(passed) >= 2
+    assert sum(t["stage"] == "unverified" for t in capped) == len(passed) - 1
+    assert res.extras["unverified"] == len(passed) - 1
