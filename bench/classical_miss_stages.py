@@ -30,13 +30,14 @@ import sys
 from collections import Counter
 from pathlib import Path
 
+from detect_bench import COVERED_FRAC as COVERED  # the occluded share over which a marker counts as covered
+
 RESULTS = Path(__file__).parent / "results" / "classical_miss_stages.json"
 TRUTH_FIELDS = ("radius_px", "type", "centre_hidden", "occluded_frac", "blur_px", "contrast", "tilt_deg", "margin",
                 "texture")
 # furthest first: the order of the scan's tests (cpdetect.classical._Scan.run)
 ORDER = ("kept", "score after refinement", "centre grey", "centre reach", "single saddle", "beside a found marker",
          "score", "verify", "unverified", "prefilter")
-COVERED = 0.02  # occluded fraction over which a marker counts as covered (as in bench/detect_bench.py)
 
 
 def near_radius(radius_px: float) -> float:

@@ -661,6 +661,12 @@ def _ellipse_residuals(pts: np.ndarray) -> tuple[np.ndarray, Any]:
     return (rho - 1.0) * math.sqrt(a * b) / 2, ((cx, cy), (a, b), ang)
 
 
+def _outline_fits(e_model: float, r0: float) -> bool:
+    """Whether an outline model's rms residual ``e_model`` (pixels) fits boundary points at rms
+    distance ``r0``: the test of :meth:`_Verifier._fit_outline`."""
+    return e_model < 0.1 * r0 + 0.2
+
+
 def _equal_area_radius(poly: np.ndarray) -> float:
     """Radius (pixels) of the circle with the area of the polygon ``poly`` ((n, 2) vertices in order)."""
     area = 0.5 * abs(np.dot(poly[:, 0], np.roll(poly[:, 1], -1)) - np.dot(poly[:, 1], np.roll(poly[:, 0], -1)))
@@ -1397,15 +1403,14 @@ class _Verifier:
         self.types_disagreed |= by_turn != by_residual
         mtype = by_residual if self.type_rule == "residual" else by_turn
         e_model = {"diagonal": e_line, "square": e_two, "circle": e_ell}[mtype]
-        ratio = self.s.outline_r0_ratio
-        if not e_model < 0.1 * r0 + 0.2 and mtype == "circle" and self.s.robust_ellipse:
+        if not _outline_fits(e_model, r0) and mtype == "circle" and self.s.robust_ellipse:
             # one stray point can spoil the ellipse of a small blurred circle; refitted without it,
             # kept only where the ellipse agrees with its points (as in _consistent_outline): a
             # polarity whose rays ran past the marker to some far edge does not
             e_rob, ell_rob = _ellipse_residual_robust(all_pts)
-            if e_rob < 0.1 * r0 + 0.2 and ratio >= math.sqrt(ell_rob[1][0] * ell_rob[1][1]) / 2 / r0 >= 1.0 / ratio:
+            if _outline_fits(e_rob, r0) and self._agrees_with_r0(math.sqrt(ell_rob[1][0] * ell_rob[1][1]) / 2, r0):
                 e_ell, ell, e_model = e_rob, ell_rob, e_rob
-        if not e_model < 0.1 * r0 + 0.2:
+        if not _outline_fits(e_model, r0):
             return f"outline does not fit ({mtype})"
         if pol_dark is None:
             # the outline's corners from the opposite pair that fits better
@@ -1454,21 +1459,26 @@ class _Verifier:
         corners close in a few pixels from the centre; that outline fails the size test, and a light
         margin's outline is then the one left. The other models are tried by their residual and kept
         only where they fit (the test of :meth:`_fit_outline`) and agree."""
-        k = self.s.outline_r0_ratio
         r0 = fit["r0"]
-        if k >= _equal_area_radius(outline) / r0 >= 1.0 / k:
+        if self._agrees_with_r0(_equal_area_radius(outline), r0):
             return fit, outline
         e_models, ell = dict(fit["e_models"]), fit["ell"]
         if self.s.robust_ellipse:
             e_models["circle"], ell = _ellipse_residual_robust(np.concatenate(list(fit["pts_by_sector"].values())))
         for mtype in sorted(e_models, key=e_models.get):
             e = e_models[mtype]
-            if mtype == fit["mtype"] or not e < 0.1 * r0 + 0.2:
+            if mtype == fit["mtype"] or not _outline_fits(e, r0):
                 continue
             alt = self.outline(mtype, x, y, core, fit["pol_dark"], fit["e1"], fit["e2"], ell)
-            if alt is not None and self._encloses(alt, x, y) and k >= _equal_area_radius(alt) / r0 >= 1.0 / k:
+            if alt is not None and self._encloses(alt, x, y) and self._agrees_with_r0(_equal_area_radius(alt), r0):
                 return dict(fit, mtype=mtype, e_model=e, e_rel=e / r0, ell=ell), alt
         return fit, outline
+
+    def _agrees_with_r0(self, radius: float, r0: float) -> bool:
+        """Whether an outline's equal-area radius is within ``outline_r0_ratio`` times (either way) the
+        rms distance r0 of the boundary points it came from."""
+        k = self.s.outline_r0_ratio
+        return k >= radius / r0 >= 1.0 / k
 
     @staticmethod
     def _encloses(poly: np.ndarray, x: float, y: float) -> bool:
@@ -1856,7 +1866,9 @@ class _Scan:
         todo = np.nonzero(passed)[0]
         colour = paint_search is not None
 
-        def note(ci: int, stage: str, v: "_Verified | None" = None) -> None:
+        def mark(ci: int, stage: str, v: "_Verified | None" = None) -> None:
+            if self.trace is None:
+                return
             c = cands[ci]
             row = {"x": float(cand_xy[ci, 0]), "y": float(cand_xy[ci, 1]), "level": int(c.level),
                    "contrast": float(c.contrast), "pass": "colour" if colour else "gray", "stage": stage}
@@ -1866,13 +1878,12 @@ class _Scan:
 
         if self.trace is not None:
             for ci in np.nonzero(~passed)[0]:
-                note(ci, "prefilter")
+                mark(ci, "prefilter")
             for ci in todo[s.max_verified:]:
-                note(ci, "unverified")
+                mark(ci, "unverified")
         if len(todo) > s.max_verified:
             self.unverified += len(todo) - s.max_verified
             todo = todo[:s.max_verified]
-        mark = note if self.trace is not None else (lambda *a: None)
         for ci in todo:
             c = cands[ci]
             scale = k * 2 ** c.level
