@@ -8,7 +8,10 @@
    ``probability_map`` (downscale to max_side, OpenCV DNN) and of the full ``detect`` (instances and
    refinement on the full-resolution image) on the decoded gray image, markers found (centre within
    max(3, 0.25 radius) px), false detections and centre errors; peak RSS of a fresh subprocess that
-   reads the image and runs one detection.
+   reads the image and runs one detection. Also: the network's time inside each ``detect`` call
+   and the time after it (instances, refinement), and OpenCV's own per-layer times of one scale-1 network pass on the
+   processing-size image (``cv2.dnn.Net.getPerfProfile``): the slowest layers and each part's share
+   (backbone, OCR head, class and attention heads), which says where a lighter network would save.
 3. Model files: parameters, model.pt / model.onnx sizes.
 
 Writes bench/results/hma_bench.json and prints it.
@@ -52,17 +55,55 @@ def peak_rss_mb(model_dir: str, path: str) -> dict:
     return {"peak_rss_mb": peak / 1024, "increase_mb": (peak - base) / 1024}
 
 
-def main() -> int:
+def layer_profile(backend, x: np.ndarray, top: int = 8) -> dict:
+    """OpenCV's per-layer times (ms) of one network pass of ``backend`` (an OpenCVBackend) on ``x``
+    (h, w) float32: the ``top`` slowest layers and the share of each part of the network, by the
+    first component of the layer names of learned.export's graph (backbone, ocr, cls_head,
+    attn_head; the rest, such as resizes and concatenations between them, as "other")."""
     import cv2
 
+    backend.trunk(x)
+    total, per = backend.net.getPerfProfile()
+    ms = np.asarray(per, float).ravel() * 1000.0 / cv2.getTickFrequency()
+    names = list(backend.net.getLayerNames())[:len(ms)]
+    parts: dict[str, float] = {}
+    for name, t in zip(names, ms):
+        head = name.strip("/").split("/")[0]
+        key = head if head in ("backbone", "ocr", "cls_head", "attn_head") else "other"
+        parts[key] = parts.get(key, 0.0) + float(t)
+    layer_sum = float(ms.sum()) or 1.0
+    order = np.argsort(-ms)[:top]
+    return {"input": list(x.shape), "total_ms": float(total) * 1000.0 / cv2.getTickFrequency(),
+            "share": {k: round(v / layer_sum, 3) for k, v in sorted(parts.items(), key=lambda kv: -kv[1])},
+            "slowest_ms": {names[i]: round(float(ms[i]), 1) for i in order}}
+
+
+def main() -> int:
     from learned.adapter import default_model_dir
-    from learned.infer import OpenCVBackend, probability_map
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--model-dir", default=str(default_model_dir()))
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--seed", type=int, default=2024, help="seed of the 45 MP images (detect_bench's default)")
     args = ap.parse_args()
+    from cpdetect.errors import InputError, UsageError
+
+    if args.repeats < 1:
+        print(f"error: --repeats must be >= 1, got {args.repeats}", file=sys.stderr)
+        return 2
+    try:
+        return run(args)
+    except (InputError, UsageError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+def run(args: argparse.Namespace) -> int:
+    import cv2
+
+    from cpdetect.fileio import write_json_atomic
+    from learned.infer import OpenCVBackend, probability_map
+
     d = Path(args.model_dir)
     res: dict = {"model_dir": str(d), "cv2": cv2.__version__}
     try:
@@ -82,6 +123,17 @@ def main() -> int:
     from detect_bench import make_45mp
 
     det = get_detector("hma", model_dir=str(d), backend="opencv")
+    # the network's share of each detect call, timed inside that call
+    net_seconds: list[float] = []
+    probability = det.probability
+
+    def timed_probability(gray):
+        t = time.perf_counter()
+        out = probability(gray)
+        net_seconds.append(time.perf_counter() - t)
+        return out
+
+    det.probability = timed_probability
     import tempfile
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -89,14 +141,16 @@ def main() -> int:
             path = Path(tmp) / f"{key}.jpg"
             truth = make_45mp(path, args.seed, texture)
             img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-            tp, td = [], []
+            tp, td, tn = [], [], []
             for _ in range(args.repeats):
                 t = time.perf_counter()
                 probability_map(img, ob, (0.5, 1.0), max_side=2048, tile=2048)
                 tp.append(time.perf_counter() - t)
+                net_seconds.clear()
                 t = time.perf_counter()
                 r = det.detect(img)
                 td.append(time.perf_counter() - t)
+                tn.append(sum(net_seconds))
             errors, per_marker = [], []
             for t in truth:
                 dist = [math.hypot(m.x - t["x"], m.y - t["y"]) for m in r.detections]
@@ -111,9 +165,15 @@ def main() -> int:
                         "per_marker": per_marker,
                         "probability_map_s_median": float(np.median(tp)),
                         "detect_s_median": float(np.median(td)),
+                        "detect_network_s_median": float(np.median(tn)),
+                        "after_network_s_median": float(np.median(np.subtract(td, tn))),
                         "detect_process_memory": peak_rss_mb(str(d), str(path))}
+            if key == "jpeg_45mp":
+                f = 2048 / max(img.shape)
+                small = cv2.resize(img, (round(img.shape[1] * f), round(img.shape[0] * f)), interpolation=cv2.INTER_AREA)
+                res["network_layers"] = layer_profile(ob, small.astype(np.float32) / 255.0)
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(res, indent=1) + "\n")
+    write_json_atomic(RESULTS, res, indent=1)
     print(json.dumps(res, indent=1))
     return 0
 
