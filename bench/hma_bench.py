@@ -9,9 +9,10 @@
    refinement on the full-resolution image) on the decoded gray image, markers found (centre within
    max(3, 0.25 radius) px), false detections and centre errors; peak RSS of a fresh subprocess that
    reads the image and runs one detection. Also: the network's time inside each ``detect`` call
-   and the time after it (instances, refinement), and OpenCV's own per-layer times of one scale-1 network pass on the
-   processing-size image (``cv2.dnn.Net.getPerfProfile``): the slowest layers and each part's share
-   (backbone, OCR head, class and attention heads), which says where a lighter network would save.
+   and the time after it (instances, refinement), and OpenCV's own per-layer times of one scale-1
+   network pass on the processing-size image (``cv2.dnn.Net.getPerfProfile``): the slowest layers
+   and each part's share (backbone, OCR head, class and attention heads), which says where a
+   lighter network would save.
 3. Model files: parameters, model.pt / model.onnx sizes.
 
 Writes bench/results/hma_bench.json and prints it.
@@ -169,8 +170,11 @@ def run(args: argparse.Namespace) -> int:
                         "after_network_s_median": float(np.median(np.subtract(td, tn))),
                         "detect_process_memory": peak_rss_mb(str(d), str(path))}
             if key == "jpeg_45mp":
-                f = 2048 / max(img.shape)
-                small = cv2.resize(img, (round(img.shape[1] * f), round(img.shape[0] * f)), interpolation=cv2.INTER_AREA)
+                # the image the detector's network sees (learned.infer.probability_map's downscale)
+                h, w = img.shape
+                f = min(1.0, (det.settings.max_side or max(h, w)) / max(h, w))
+                small = cv2.resize(img, (max(1, int(round(w * f))), max(1, int(round(h * f)))),
+                                   interpolation=cv2.INTER_AREA)
                 res["network_layers"] = layer_profile(ob, small.astype(np.float32) / 255.0)
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(RESULTS, res, indent=1)
