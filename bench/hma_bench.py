@@ -66,6 +66,7 @@ def layer_profile(backend, x: np.ndarray, top: int = 8) -> dict:
     backend.trunk(x)
     total, per = backend.net.getPerfProfile()
     ms = np.asarray(per, float).ravel() * 1000.0 / cv2.getTickFrequency()
+    # one time per layer, in the order of getLayerNames (layer ids 1..n)
     names = list(backend.net.getLayerNames())[:len(ms)]
     parts: dict[str, float] = {}
     for name, t in zip(names, ms):
@@ -96,6 +97,10 @@ def main() -> int:
         return run(args)
     except (InputError, UsageError) as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except subprocess.CalledProcessError as exc:
+        last = (exc.stderr or "").strip().splitlines()[-1:] or [f"exit status {exc.returncode}"]
+        print(f"error: the peak-memory child process failed: {last[0]}", file=sys.stderr)
         return 2
 
 
