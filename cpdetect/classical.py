@@ -453,14 +453,20 @@ def _line_fit(pts: np.ndarray) -> tuple[np.ndarray, float]:
     return line, math.sqrt(lam / max(len(pts), 1))
 
 
-def _line_fit_robust(pts: np.ndarray) -> tuple[np.ndarray, float]:
-    """:func:`_line_fit` refitted without its outliers (residual over 3x the median, 0.3 px at least;
-    at most the worst 15 %): rays near a diagonal marker's sharp tips that miss the side."""
-    line, _ = _line_fit(pts)
-    res = np.abs(pts @ line[:2] + line[2])
+def _inliers(res: np.ndarray) -> np.ndarray:
+    """Which absolute residuals ``res`` (pixels) a robust refit keeps: those up to 3x the median
+    (0.3 px at least), dropping at most the worst 15 %."""
     keep = res <= max(3.0 * _median(res), 0.3)
     if keep.mean() < 0.85:
         keep = res <= np.quantile(res, 0.85)
+    return keep
+
+
+def _line_fit_robust(pts: np.ndarray) -> tuple[np.ndarray, float]:
+    """:func:`_line_fit` refitted without its outliers (:func:`_inliers`): rays near a diagonal
+    marker's sharp tips that miss the side."""
+    line, _ = _line_fit(pts)
+    keep = _inliers(np.abs(pts @ line[:2] + line[2]))
     return _line_fit(pts[keep]) if keep.sum() >= 4 else _line_fit(pts)
 
 
@@ -620,17 +626,13 @@ def _ellipse_residual(pts: np.ndarray) -> tuple[float, Any]:
 
 
 def _ellipse_residual_robust(pts: np.ndarray) -> tuple[float, Any]:
-    """:func:`_ellipse_residual` refitted without its outliers, by the rule of
-    :func:`_line_fit_robust` (residual over 3x the median, 0.3 px at least; at most the worst 15 %):
-    a ray at a blurred sector's inner corner can end a few pixels from the centre, and one such
-    point among twenty on an arc moves the whole ellipse."""
+    """:func:`_ellipse_residual` refitted without its outliers (:func:`_inliers`): a ray at a
+    blurred sector's inner corner can end a few pixels from the centre, and one such point among
+    twenty on an arc moves the whole ellipse."""
     res, ell = _ellipse_residuals(pts)
     if ell is None:
         return np.inf, None
-    a = np.abs(res)
-    keep = a <= max(3.0 * _median(a), 0.3)
-    if keep.mean() < 0.85:
-        keep = a <= np.quantile(a, 0.85)
+    keep = _inliers(np.abs(res))
     if keep.sum() >= 6 and not keep.all():
         res2, ell2 = _ellipse_residuals(pts[keep])
         if ell2 is not None:
