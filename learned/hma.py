@@ -40,7 +40,9 @@ class HMAConfig:
     """Everything needed to rebuild the network.
 
     num_classes: K output channels (2 = background, marker). backbone: HRNet widths and depths.
-    ocr_mid / ocr_key: OCR channel widths. head_bot: bottleneck of the semantic and attention heads.
+    ocr_mid / ocr_key: OCR channel widths. ocr_kernel: the kernel of the OCR head's reducing
+    convolution (3, the paper's; 1 for a CPU budget). aux_mid: the OCR auxiliary head's hidden width
+    (None = the backbone's output width, the paper's). head_bot: bottleneck of the semantic and attention heads.
     seg_head: "conv3" = 3x3-BN-ReLU, 3x3-BN-ReLU, 1x1 (the paper's semantic head, issue 6) or
     "linear" = one 1x1 conv (upstream MscaleOCR). mean / std: normalisation of the [0, 1] input.
     train_scales: the two scales of training (low, high). name: a label (the preset it came from).
@@ -50,6 +52,8 @@ class HMAConfig:
     backbone: HRNetConfig = field(default_factory=HRNetConfig)
     ocr_mid: int = 128
     ocr_key: int = 64
+    ocr_kernel: int = 3
+    aux_mid: int | None = None
     head_bot: int = 64
     seg_head: str = "conv3"
     dropout: float = 0.05
@@ -63,6 +67,10 @@ class HMAConfig:
             raise ValueError("num_classes must be >= 1")
         if self.seg_head not in ("conv3", "linear"):
             raise ValueError(f"seg_head must be 'conv3' or 'linear', got {self.seg_head!r}")
+        if self.ocr_kernel not in (1, 3):
+            raise ValueError(f"ocr_kernel must be 1 or 3, got {self.ocr_kernel!r}")
+        if self.aux_mid is not None and not (isinstance(self.aux_mid, int) and self.aux_mid >= 1):
+            raise ValueError(f"aux_mid must be a positive integer (or None), got {self.aux_mid!r}")
         if not self.std > 0:
             raise ValueError("std must be positive")
         lo, hi = self.train_scales
@@ -108,6 +116,11 @@ PRESETS: dict[str, HMAConfig] = {
     "w16_tiny": HMAConfig(backbone=HRNetConfig(stem_width=32, stage1_blocks=1, stage1_planes=16,
                                                widths=(16, 32, 64, 128), modules=(1, 1, 1), blocks=1),
                           ocr_mid=64, ocr_key=32, head_bot=32, name="w16_tiny"),
+    # w16_tiny with the OCR head's two costliest layers narrowed for the CPU: a 1x1 reduction and
+    # a 64-wide auxiliary head
+    "w16_lite": HMAConfig(backbone=HRNetConfig(stem_width=32, stage1_blocks=1, stage1_planes=16,
+                                               widths=(16, 32, 64, 128), modules=(1, 1, 1), blocks=1),
+                          ocr_mid=64, ocr_key=32, ocr_kernel=1, aux_mid=64, head_bot=32, name="w16_lite"),
     # for contract tests: a few thousand parameters
     "test_micro": HMAConfig(backbone=HRNetConfig(stem_width=8, stage1_blocks=1, stage1_planes=4,
                                                  widths=(4, 8, 8, 8), modules=(1, 1, 1), blocks=1),
@@ -147,7 +160,7 @@ class HMAModel(nn.Module):
         self.scales: tuple[float, ...] = (1.0,)
         self.backbone = HRNet(config.backbone)
         self.ocr = OCRHead(self.backbone.out_channels, config.num_classes, config.ocr_mid, config.ocr_key,
-                           config.dropout)
+                           config.dropout, config.ocr_kernel, config.aux_mid)
         if config.seg_head == "conv3":
             self.cls_head = _head(config.ocr_mid, config.head_bot, config.num_classes, final_bias=True)
         else:

@@ -56,13 +56,25 @@ class ObjectAttention(nn.Module):
 
 
 class OCRHead(nn.Module):
-    """feats_hl (N, C_hl, h, w) -> (aux logits (N, K, h, w), ocr_feats (N, mid, h, w))."""
+    """feats_hl (N, C_hl, h, w) -> (aux logits (N, K, h, w), ocr_feats (N, mid, h, w)).
 
-    def __init__(self, in_channels: int, num_classes: int, mid: int = 128, key: int = 64, dropout: float = 0.05):
+    ``reduce_kernel``: the kernel of the convolution that reduces the backbone features to ``mid``
+    channels (3, the paper's; 1 for a CPU budget). ``aux_mid``: the auxiliary head's hidden width
+    (None = ``in_channels``, the paper's). At 1/4 resolution these two layers are most of the head's
+    cost on a small backbone: in the shipped w16_tiny network they take half of a 2048 x 1365 pass
+    (bench/hma_bench.py, ``network_layers``).
+    """
+
+    def __init__(self, in_channels: int, num_classes: int, mid: int = 128, key: int = 64, dropout: float = 0.05,
+                 reduce_kernel: int = 3, aux_mid: int | None = None):
         super().__init__()
-        self.conv3x3_ocr = nn.Sequential(nn.Conv2d(in_channels, mid, 3, padding=1), bn(mid), nn.ReLU())
-        self.aux_head = nn.Sequential(*bn_relu_conv1x1(in_channels, in_channels),
-                                      nn.Conv2d(in_channels, num_classes, 1, bias=True))
+        if reduce_kernel not in (1, 3):
+            raise ValueError(f"reduce_kernel must be 1 or 3, got {reduce_kernel}")
+        aux_mid = in_channels if aux_mid is None else int(aux_mid)
+        self.conv3x3_ocr = nn.Sequential(nn.Conv2d(in_channels, mid, reduce_kernel, padding=reduce_kernel // 2),
+                                         bn(mid), nn.ReLU())
+        self.aux_head = nn.Sequential(*bn_relu_conv1x1(in_channels, aux_mid),
+                                      nn.Conv2d(aux_mid, num_classes, 1, bias=True))
         self.gather = SpatialGather()
         self.attention = ObjectAttention(mid, key)
         self.fuse = nn.Sequential(*bn_relu_conv1x1(2 * mid, mid), nn.Dropout2d(dropout))

@@ -21,8 +21,9 @@ def register(sub) -> None:
     p.add_argument("--val-data", help="validation dataset folder (default: hold out --val-frac of --data)")
     p.add_argument("--val-frac", type=float, default=0.05, help="share of --data held out (default 0.05)")
     p.add_argument("--model", default="w16_tiny",
-                   help="architecture preset: w16_tiny, w18s1_lite, or from-init to take --init's "
-                        "config (default w16_tiny)")
+                   help="architecture preset: w16_tiny, w16_lite (w16_tiny with a narrow OCR head, "
+                        "see python -m learned.narrow), w18s1_lite, or from-init to take --init's config "
+                        "(default w16_tiny)")
     p.add_argument("--init", help="checkpoint (model folder, checkpoint.pt or state dict) to start from; "
                                   "layers that match are loaded, the others re-initialised and listed")
     p.add_argument("--freeze-backbone", action="store_true", help="train only the OCR and the heads")

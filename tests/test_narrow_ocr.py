@@ -1,0 +1,135 @@
+"""The narrow OCR head (``ocr_kernel``, ``aux_mid``) and the carrying over of trained weights to it
+(learned/narrow.py)."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from learned.hma import HMAConfig, build_model, preset, save_model  # noqa: E402
+from learned.narrow import main as narrow_main  # noqa: E402
+from learned.narrow import narrow_ocr_state  # noqa: E402
+
+torch.set_num_threads(1)
+
+
+def _trained_like(name: str = "test_micro", seed: int = 0, **changes):
+    """A random model with random batch-norm statistics and affine parameters (as a trained one has)."""
+    torch.manual_seed(seed)
+    m = build_model(preset(name, **changes))
+    with torch.no_grad():
+        for mod in m.modules():
+            if isinstance(mod, torch.nn.BatchNorm2d):
+                mod.weight.uniform_(0.5, 1.5)
+                mod.bias.uniform_(-0.3, 0.3)
+                mod.running_mean.uniform_(-0.2, 0.2)
+                mod.running_var.uniform_(0.5, 2.0)
+    return m.eval()
+
+
+def test_the_narrow_options_shape_the_ocr_head_and_round_trip_through_the_config():
+    wide = build_model("test_micro")
+    narrow = build_model(preset("test_micro", ocr_kernel=1, aux_mid=3))
+    c_hl = wide.backbone.out_channels
+    assert wide.ocr.conv3x3_ocr[0].kernel_size == (3, 3)
+    assert tuple(wide.ocr.aux_head[0].weight.shape[:2]) == (c_hl, c_hl)  # the paper's: C_hl -> C_hl
+    assert narrow.ocr.conv3x3_ocr[0].kernel_size == (1, 1)
+    assert tuple(narrow.ocr.aux_head[0].weight.shape[:2]) == (3, c_hl)
+    assert tuple(narrow.ocr.aux_head[3].weight.shape[:2]) == (2, 3)
+    cfg = narrow.config
+    assert HMAConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    # a config written before the options existed is the paper's head
+    old = {k: v for k, v in wide.config.to_dict().items() if k not in ("ocr_kernel", "aux_mid")}
+    assert HMAConfig.from_dict(old) == wide.config
+    # the same spatial size out of both
+    x = torch.rand(1, 1, 64, 96)
+    with torch.no_grad():
+        assert wide.eval()(x).shape == narrow.eval()(x).shape == (1, 2, 64, 96)
+
+
+@pytest.mark.parametrize("bad", [dict(ocr_kernel=5), dict(ocr_kernel=0), dict(aux_mid=0), dict(aux_mid=2.5)])
+def test_bad_narrow_options_are_refused(bad):
+    with pytest.raises(ValueError):
+        preset("test_micro", **bad)
+
+
+def test_the_lite_preset_narrows_only_the_two_costly_layers():
+    tiny, lite = preset("w16_tiny"), preset("w16_lite")
+    differ = {k for k, v in tiny.to_dict().items() if lite.to_dict()[k] != v}
+    assert differ == {"ocr_kernel", "aux_mid", "name"}
+    assert (lite.ocr_kernel, lite.aux_mid) == (1, 64)
+
+
+def test_the_summed_kernel_equals_the_3x3_reduction_on_locally_constant_features():
+    src = _trained_like()
+    dst_cfg = src.config.replace(ocr_kernel=1)
+    dst = build_model(dst_cfg).eval()
+    dst.load_state_dict(narrow_ocr_state(src.state_dict(), src.config, dst_cfg), strict=True)
+    c_hl = src.backbone.out_channels
+    feats = torch.randn(1, c_hl, 1, 1).expand(1, c_hl, 9, 11).contiguous()  # constant over space
+    with torch.no_grad():
+        a = src.ocr.conv3x3_ocr(feats)
+        b = dst.ocr.conv3x3_ocr(feats)
+    # away from the zero padding the two agree to rounding; at the border they must not (the 3x3
+    # kernel sees the padding there), which shows the comparison is not vacuous
+    assert torch.allclose(a[..., 1:-1, 1:-1], b[..., 1:-1, 1:-1], atol=1e-5)
+    assert not torch.allclose(a[..., 0, :], b[..., 0, :], atol=1e-3)
+    # with the full auxiliary width the aux head is carried over unchanged
+    with torch.no_grad():
+        assert torch.equal(src.ocr.aux_head(feats), dst.ocr.aux_head(feats))
+
+
+def test_the_narrow_aux_head_keeps_the_units_that_weigh_most():
+    src = _trained_like()
+    state = src.state_dict()
+    hidden = state["ocr.aux_head.0.weight"].shape[0]
+    assert hidden >= 6
+    strong = [1, hidden - 2]
+    w_out = state["ocr.aux_head.3.weight"]
+    w_out.mul_(0.01)
+    w_out[:, strong] = 5.0  # these two units make the output
+    dst_cfg = src.config.replace(aux_mid=2)
+    narrowed = narrow_ocr_state(state, src.config, dst_cfg)
+    dst = build_model(dst_cfg).eval()
+    dst.load_state_dict(narrowed, strict=True)
+    assert torch.equal(narrowed["ocr.aux_head.0.weight"], state["ocr.aux_head.0.weight"][strong])
+    assert torch.equal(narrowed["ocr.aux_head.1.running_var"], state["ocr.aux_head.1.running_var"][strong])
+    # so the narrow head's output is the wide one's less the weak units' small share
+    src.load_state_dict(state)
+    feats = torch.randn(2, src.backbone.out_channels, 5, 7)
+    with torch.no_grad():
+        wide_out, narrow_out = src.ocr.aux_head(feats), dst.ocr.aux_head(feats)
+    assert (narrow_out - wide_out).abs().max() < 0.05 * wide_out.abs().max()
+    # every tensor outside the two layers is the trained one
+    same = [k for k in state if not k.startswith(("ocr.conv3x3_ocr.0.weight", "ocr.aux_head."))]
+    assert all(torch.equal(narrowed[k], state[k]) for k in same)
+
+
+def test_narrowing_refuses_other_changes_and_a_wider_head():
+    src = _trained_like()
+    with pytest.raises(ValueError, match="ocr_mid"):
+        narrow_ocr_state(src.state_dict(), src.config, src.config.replace(ocr_kernel=1, ocr_mid=4))
+    with pytest.raises(ValueError, match="wider"):
+        narrow_ocr_state(src.state_dict(), src.config, src.config.replace(aux_mid=10_000))
+
+
+def test_the_narrow_command_writes_a_state_that_trains_from(tmp_path, capsys):
+    src = _trained_like()
+    save_model(src, tmp_path / "m")
+    out = tmp_path / "narrow.pt"
+    assert narrow_main([str(tmp_path / "m"), str(out), "--aux-mid", "3"]) == 0
+    state = torch.load(out, weights_only=True)
+    dst = build_model(preset("test_micro", ocr_kernel=1, aux_mid=3))
+    dst.load_state_dict(state, strict=True)
+    # bad input: one line naming the file, exit 2, nothing written
+    missing = tmp_path / "nothing"
+    assert narrow_main([str(missing), str(tmp_path / "x.pt")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nothing" in err[0]
+    assert not (tmp_path / "x.pt").exists()
+    assert narrow_main([str(tmp_path / "m"), str(tmp_path / "y.pt"), "--aux-mid", "100000"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "wider" in err[0]
+    assert not (tmp_path / "y.pt").exists()
