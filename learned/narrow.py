@@ -10,10 +10,11 @@ trained one's weights than from random ones:
 - the auxiliary head keeps the ``aux_mid`` hidden units that weigh most in its output (the norm of
   their output weights times their batch-norm scale and shift), with their weights.
 
-Every other tensor is copied as it is. ``cpdetect train --init STATE --model from-init`` or a preset
-of the narrow shape then fine-tunes it (learned/weights/default/TRAINING.md).
+Every other tensor is copied as it is. The result is a model folder (config.json, model.pt), which
+``cpdetect train --init OUTDIR --model from-init [--distill MODELDIR]`` then fine-tunes
+(learned/weights/default/TRAINING.md).
 
-    python -m learned.narrow MODELDIR OUT.pt [--aux-mid 64] [--ocr-kernel 1]
+    python -m learned.narrow MODELDIR OUTDIR [--aux-mid 64] [--ocr-kernel 1]
 """
 from __future__ import annotations
 
@@ -58,14 +59,14 @@ def narrow_ocr_state(state: dict[str, torch.Tensor], src: HMAConfig, dst: HMACon
 
 def main(argv: list[str] | None = None) -> int:
     from cpdetect.errors import CpdetectError
-    from cpdetect.fileio import atomic_path
+    from cpdetect.fileio import cannot_write
 
-    from .hma import read_config
+    from .hma import build_model, read_config, save_model
     from .train import read_state
 
     ap = argparse.ArgumentParser(prog="python -m learned.narrow", description=__doc__.split("\n\n")[0])
     ap.add_argument("model_dir", help="trained model folder (config.json, model.pt)")
-    ap.add_argument("out", help="state dict to write (.pt), for cpdetect train --init")
+    ap.add_argument("out", help="model folder to write (config.json, model.pt), for cpdetect train --init")
     ap.add_argument("--ocr-kernel", type=int, default=1, choices=(1, 3))
     ap.add_argument("--aux-mid", type=int, default=64)
     a = ap.parse_args(argv)
@@ -73,14 +74,17 @@ def main(argv: list[str] | None = None) -> int:
         src = read_config(a.model_dir)
         state, _ = read_state(a.model_dir)
         dst = src.replace(ocr_kernel=a.ocr_kernel, aux_mid=a.aux_mid)
-        narrowed = narrow_ocr_state(state, src, dst)
-        with atomic_path(a.out) as tmp:
-            torch.save(narrowed, tmp)
+        model = build_model(dst)
+        model.load_state_dict(narrow_ocr_state(state, src, dst))
+        save_model(model, a.out)
     except CpdetectError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    except (ValueError, KeyError) as exc:
-        print(f"error: {a.model_dir}: {exc}", file=sys.stderr)
+    except (ValueError, KeyError, RuntimeError) as exc:  # a state that does not fit its own config
+        print(f"error: {a.model_dir}: {str(exc).splitlines()[0]}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"error: {cannot_write(exc, a.out)}", file=sys.stderr)
         return 2
     print(f"wrote {a.out}: ocr_kernel {dst.ocr_kernel}, aux_mid {dst.aux_mid}")
     return 0

@@ -52,7 +52,11 @@ class TrainConfig:
     as (1 - it / total) ** poly. rmi_scope: covariances of the RMI term over the batch or per image
     (:class:`learned.rmi.HMALossWeights`). val_frac: fraction of the images held out
     (ignored when ``val_data`` is given); val_crops: fixed validation crops. checkpoint_minutes: time
-    between checkpoints inside an epoch. workers: processes that draw the crops (0 = the training
+    between checkpoints inside an epoch. distill: a trained model folder (or checkpoint) whose
+    two-scale outputs the network also learns to reproduce (knowledge distillation: cross-entropy of
+    the fused and the auxiliary predictions against the teacher's probabilities, weighed 1 and 0.4 like
+    the label terms, all times ``distill_weight``), as when a narrower network
+    (:mod:`learned.narrow`) takes over from a wider one. workers: processes that draw the crops (0 = the training
     process itself); the batches, and so the weights, are the same for any number. channels_last:
     train in the channels-last memory format where that is safe, i.e. on the CPU only
     (:func:`use_channels_last`).
@@ -64,6 +68,8 @@ class TrainConfig:
     model: str = "w16_tiny"
     init: str | None = None
     freeze_backbone: bool = False
+    distill: str | None = None
+    distill_weight: float = 1.0
     epochs: int = 30
     iters_per_epoch: int = 200
     batch: int = 8
@@ -176,6 +182,37 @@ def init_from(model: HMAModel, path: str | os.PathLike) -> tuple[list[str], list
     if unused:
         log.info("checkpoint tensors not used: %s", ", ".join(unused))
     return loaded, skipped
+
+
+def load_teacher(path: str | os.PathLike, device: torch.device, channels_last: bool) -> HMAModel:
+    """The network of a model folder or checkpoint (``--distill``), frozen, in eval mode."""
+    from cpdetect.errors import InputError
+
+    state, cfg = read_state(path)
+    if cfg is None:
+        raise InputError("--distill needs a model folder or checkpoint that carries its config", path)
+    teacher = build_model(cfg)
+    try:
+        teacher.load_state_dict(state)
+    except RuntimeError as exc:
+        raise InputError(f"weights do not fit their config: {str(exc).splitlines()[0]}", path) from None
+    teacher.to(device).eval()
+    if channels_last:
+        teacher = teacher.to(memory_format=torch.channels_last)
+    for p in teacher.parameters():
+        p.requires_grad_(False)
+    return teacher
+
+
+def distillation_loss(student: dict[str, torch.Tensor], teacher: dict[str, torch.Tensor],
+                      aux_weight: float) -> torch.Tensor:
+    """Cross-entropy of the student's fused and auxiliary logits (``two_scale_forward`` outputs,
+    (N, K, H, W)) against the teacher's class probabilities, the auxiliary term times ``aux_weight``;
+    0 when the student matches the teacher exactly up to the teacher's own entropy."""
+    def soft_ce(logits: torch.Tensor, target_logits: torch.Tensor) -> torch.Tensor:
+        return torch.nn.functional.cross_entropy(logits, torch.softmax(target_logits, dim=1))
+
+    return soft_ce(student["pred"], teacher["pred"]) + aux_weight * soft_ce(student["aux"], teacher["aux"])
 
 
 def set_bn_eval(module: torch.nn.Module) -> None:
@@ -384,6 +421,7 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
     if cfg.freeze_backbone:
         for p in model.backbone.parameters():
             p.requires_grad_(False)
+    teacher = load_teacher(cfg.distill, device, channels_last) if cfg.distill else None
     params = [p for p in model.parameters() if p.requires_grad]
     opt = make_optimizer(params, cfg)
     base_lr = base_learning_rate(cfg)
@@ -439,6 +477,13 @@ def train(cfg: TrainConfig, resume: bool = False, samples: list[Sample] | None =
                 g["lr"] = lr
             outd = model(x)
             loss, parts = hma_loss(outd, y, weights, stats)
+            if teacher is not None:
+                with torch.no_grad():
+                    taught = teacher.two_scale_forward(x)
+                kd = distillation_loss(outd, taught, weights.aux)
+                loss = loss + cfg.distill_weight * kd
+                parts["distill"] = float(kd.detach())
+                parts["total"] = float(loss.detach())
             if not math.isfinite(parts["total"]):
                 raise RuntimeError(f"loss is not finite at iteration {it}: {parts}")
             opt.zero_grad(set_to_none=True)

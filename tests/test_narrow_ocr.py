@@ -115,21 +115,67 @@ def test_narrowing_refuses_other_changes_and_a_wider_head():
         narrow_ocr_state(src.state_dict(), src.config, src.config.replace(aux_mid=10_000))
 
 
-def test_the_narrow_command_writes_a_state_that_trains_from(tmp_path, capsys):
+def test_the_narrow_command_writes_a_model_folder(tmp_path, capsys):
+    from learned.hma import load_model
+
     src = _trained_like()
     save_model(src, tmp_path / "m")
-    out = tmp_path / "narrow.pt"
+    out = tmp_path / "narrow"
     assert narrow_main([str(tmp_path / "m"), str(out), "--aux-mid", "3"]) == 0
-    state = torch.load(out, weights_only=True)
-    dst = build_model(preset("test_micro", ocr_kernel=1, aux_mid=3))
-    dst.load_state_dict(state, strict=True)
+    m = load_model(out)
+    assert (m.config.ocr_kernel, m.config.aux_mid) == (1, 3)
+    assert torch.equal(m.state_dict()["backbone.stem.0.weight"], src.state_dict()["backbone.stem.0.weight"])
     # bad input: one line naming the file, exit 2, nothing written
-    missing = tmp_path / "nothing"
-    assert narrow_main([str(missing), str(tmp_path / "x.pt")]) == 2
+    assert narrow_main([str(tmp_path / "nothing"), str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "nothing" in err[0]
-    assert not (tmp_path / "x.pt").exists()
-    assert narrow_main([str(tmp_path / "m"), str(tmp_path / "y.pt"), "--aux-mid", "100000"]) == 2
+    assert narrow_main([str(tmp_path / "m"), str(tmp_path / "y"), "--aux-mid", "100000"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "wider" in err[0]
-    assert not (tmp_path / "y.pt").exists()
+    (tmp_path / "file").write_text("x")
+    assert narrow_main([str(tmp_path / "m"), str(tmp_path / "file" / "z"), "--aux-mid", "3"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is a file" in err[0]
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
+def test_distillation_loss_is_flat_where_the_student_matches_the_teacher():
+    from learned.train import distillation_loss
+
+    teacher = _trained_like(seed=1)
+    student = _trained_like(seed=1)
+    other = _trained_like(seed=2)
+    x = torch.rand(2, 1, 64, 64)
+    with torch.no_grad():
+        taught = teacher.two_scale_forward(x)
+    same = distillation_loss(student.two_scale_forward(x), taught, 0.4)
+    same.backward()
+    grads = [p.grad.abs().max() for p in student.parameters() if p.grad is not None]
+    assert grads and max(grads) < 1e-6  # soft cross-entropy: d/dlogits = p_student - p_teacher = 0
+    # another network pays more than the teacher's own entropy, and is pulled towards it
+    apart = distillation_loss(other.two_scale_forward(x), taught, 0.4)
+    assert apart.item() > same.item() + 1e-3
+    apart.backward()
+    assert max(p.grad.abs().max() for p in other.parameters() if p.grad is not None) > 1e-4
+
+
+def test_a_distilled_run_logs_its_term_and_a_missing_teacher_is_refused_before_anything_is_written(tmp_path):
+    from dataclasses import replace
+
+    from cpdetect.errors import InputError
+    from learned.train import train
+    from test_learned_model import _cfg, _tiny_samples
+
+    teacher = save_model(_trained_like(), tmp_path / "teacher")
+    assert narrow_main([str(teacher), str(tmp_path / "narrow"), "--aux-mid", "3"]) == 0
+    s = _tiny_samples()
+    cfg = _cfg(tmp_path / "kd", epochs=1, model="from-init", init=str(tmp_path / "narrow"), freeze_backbone=True,
+               distill=str(teacher), distill_weight=2.0)
+    train(cfg, samples=s[:2], val_samples=s[2:], progress=False)
+    logged = [json.loads(line) for line in (tmp_path / "kd" / "train_log.jsonl").read_text().splitlines()]
+    terms = [r["last_distill"] for r in logged if "last_distill" in r]
+    assert terms and all(t > 0 for t in terms)
+    with pytest.raises(InputError, match="checkpoint not found"):
+        train(replace(cfg, out=str(tmp_path / "kd2"), distill=str(tmp_path / "none")), samples=s[:2],
+              val_samples=s[2:], progress=False)
+    assert not (tmp_path / "kd2").exists()

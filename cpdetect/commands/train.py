@@ -27,6 +27,12 @@ def register(sub) -> None:
     p.add_argument("--init", help="checkpoint (model folder, checkpoint.pt or state dict) to start from; "
                                   "layers that match are loaded, the others re-initialised and listed")
     p.add_argument("--freeze-backbone", action="store_true", help="train only the OCR and the heads")
+    p.add_argument("--distill", metavar="TEACHER",
+                   help="a trained model folder (or checkpoint) whose outputs the network also learns to "
+                        "reproduce (knowledge distillation), e.g. the wider network a --model w16_lite run "
+                        "takes over from")
+    p.add_argument("--distill-weight", type=float, default=1.0,
+                   help="weight of the distillation terms against the label terms (default 1)")
     p.add_argument("--epochs", type=int, default=30, help="epochs (default 30)")
     p.add_argument("--iters-per-epoch", type=int, default=200, help="iterations per epoch (default 200)")
     p.add_argument("--batch", type=int, default=8, help="crops per iteration (default 8)")
@@ -77,10 +83,13 @@ def run(args) -> int:
         raise UsageError("--crop must be a multiple of 32")
     if not 0 <= args.small_marker_bias <= 4:
         raise UsageError("--small-marker-bias must be in [0, 4]")
+    if not args.distill_weight > 0:
+        raise UsageError("--distill-weight must be positive")
     if args.model == "from-init" and not args.init:
         raise UsageError("--model from-init needs --init")
     cfg = TrainConfig(data=args.data, out=args.out, val_data=args.val_data, model=args.model, init=args.init,
-                      freeze_backbone=args.freeze_backbone, epochs=args.epochs,
+                      freeze_backbone=args.freeze_backbone, distill=args.distill,
+                      distill_weight=args.distill_weight, epochs=args.epochs,
                       iters_per_epoch=args.iters_per_epoch, batch=args.batch, crop=args.crop, optimizer=args.optimizer, rmi_scope=args.rmi_scope, lr=args.lr,
                       val_frac=args.val_frac, seed=args.seed, device=args.device, threads=args.threads,
                       workers=args.workers, checkpoint_minutes=args.checkpoint_minutes,
