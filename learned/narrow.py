@@ -57,6 +57,18 @@ def narrow_ocr_state(state: dict[str, torch.Tensor], src: HMAConfig, dst: HMACon
     return out
 
 
+def narrow_config(src: HMAConfig, ocr_kernel: int, aux_mid: int | None) -> HMAConfig:
+    """``src`` with the given OCR head, named after the preset it then equals (w16_tiny -> w16_lite),
+    else ``<name>_narrow``."""
+    from .hma import PRESETS
+
+    dst = src.replace(ocr_kernel=ocr_kernel, aux_mid=aux_mid)
+    for name, p in PRESETS.items():
+        if p.replace(name=dst.name, num_classes=dst.num_classes) == dst:
+            return dst.replace(name=name)
+    return dst.replace(name=f"{src.name}_narrow")
+
+
 def main(argv: list[str] | None = None) -> int:
     from cpdetect.errors import CpdetectError
     from cpdetect.fileio import cannot_write
@@ -73,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         src = read_config(a.model_dir)
         state, _ = read_state(a.model_dir)
-        dst = src.replace(ocr_kernel=a.ocr_kernel, aux_mid=a.aux_mid)
+        dst = narrow_config(src, a.ocr_kernel, a.aux_mid)
         model = build_model(dst)
         model.load_state_dict(narrow_ocr_state(state, src, dst))
         save_model(model, a.out)

@@ -56,10 +56,14 @@ def test_bad_narrow_options_are_refused(bad):
 
 
 def test_the_lite_preset_narrows_only_the_two_costly_layers():
+    from learned.narrow import narrow_config
+
     tiny, lite = preset("w16_tiny"), preset("w16_lite")
     differ = {k for k, v in tiny.to_dict().items() if lite.to_dict()[k] != v}
     assert differ == {"ocr_kernel", "aux_mid", "name"}
     assert (lite.ocr_kernel, lite.aux_mid) == (1, 64)
+    # narrowing the shipped shape gives the preset, by name too
+    assert narrow_config(preset("w16_tiny", num_classes=2), 1, 64) == preset("w16_lite", num_classes=2)
 
 
 def test_the_summed_kernel_equals_the_3x3_reduction_on_locally_constant_features():
@@ -123,7 +127,7 @@ def test_the_narrow_command_writes_a_model_folder(tmp_path, capsys):
     out = tmp_path / "narrow"
     assert narrow_main([str(tmp_path / "m"), str(out), "--aux-mid", "3"]) == 0
     m = load_model(out)
-    assert (m.config.ocr_kernel, m.config.aux_mid) == (1, 3)
+    assert (m.config.ocr_kernel, m.config.aux_mid, m.config.name) == (1, 3, "test_micro_narrow")
     assert torch.equal(m.state_dict()["backbone.stem.0.weight"], src.state_dict()["backbone.stem.0.weight"])
     # bad input: one line naming the file, exit 2, nothing written
     assert narrow_main([str(tmp_path / "nothing"), str(tmp_path / "x")]) == 2
