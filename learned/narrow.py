@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+
 import torch
 
 from .hma import HMAConfig

@@ -71,6 +71,7 @@ class OCRHead(nn.Module):
         if reduce_kernel not in (1, 3):
             raise ValueError(f"reduce_kernel must be 1 or 3, got {reduce_kernel}")
         aux_mid = in_channels if aux_mid is None else int(aux_mid)
+        # upstream's name whatever the kernel: checkpoints keep their keys
         self.conv3x3_ocr = nn.Sequential(nn.Conv2d(in_channels, mid, reduce_kernel, padding=reduce_kernel // 2),
                                          bn(mid), nn.ReLU())
         self.aux_head = nn.Sequential(*bn_relu_conv1x1(in_channels, aux_mid),

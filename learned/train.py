@@ -207,8 +207,9 @@ def load_teacher(path: str | os.PathLike, device: torch.device, channels_last: b
 def distillation_loss(student: dict[str, torch.Tensor], teacher: dict[str, torch.Tensor],
                       aux_weight: float) -> torch.Tensor:
     """Cross-entropy of the student's fused and auxiliary logits (``two_scale_forward`` outputs,
-    (N, K, H, W)) against the teacher's class probabilities, the auxiliary term times ``aux_weight``;
-    0 when the student matches the teacher exactly up to the teacher's own entropy."""
+    (N, K, H, W)) against the teacher's class probabilities, the auxiliary term times ``aux_weight``.
+    Least (the teacher's own entropy, with a zero gradient) where the student gives the teacher's
+    probabilities."""
     def soft_ce(logits: torch.Tensor, target_logits: torch.Tensor) -> torch.Tensor:
         return torch.nn.functional.cross_entropy(logits, torch.softmax(target_logits, dim=1))
 
