@@ -328,6 +328,34 @@ class TestHMAContract(DetectorContract):
     settings = {"backend": "opencv"}
 
 
+@pytest.mark.skipif(not shipped_weights_present("lite"), reason="the shipped lite hma weights (learned/weights/lite) are absent")
+class TestHMALiteContract(DetectorContract):
+    detector_name = "hma"
+    settings = {"backend": "opencv", "network": "lite"}
+
+
+def test_the_lite_network_is_its_own_folder_with_its_digests_and_a_narrow_head():
+    from cpdetect.errors import UsageError
+    from learned.adapter import SHIPPED_NETWORKS, default_model_dir
+    from learned.digests import check_digest, read_digests
+    from learned.hma import read_config
+
+    lite = default_model_dir("lite")
+    assert lite == SHIPPED_NETWORKS["lite"] != default_model_dir()
+    assert set(read_digests(lite)) == {"model.pt", "model.onnx"}
+    for name in ("model.pt", "model.onnx"):
+        check_digest(lite / name)
+    cfg = read_config(lite)
+    assert (cfg.ocr_kernel, cfg.aux_mid, cfg.name) == (1, 64, "w16_lite")
+    assert read_config(default_model_dir()).ocr_kernel == 3
+    assert HMADetector(network="lite", backend="opencv").model_dir == lite
+    # model_dir wins over network
+    assert HMADetector(network="lite", model_dir=str(default_model_dir()), backend="opencv").model_dir == \
+        default_model_dir()
+    with pytest.raises((ValueError, UsageError), match="network must be one of default, lite"):
+        get_detector("hma", network="huge")
+
+
 def test_dedupe_keeps_one_detection_per_x_corner():
     from cpdetect.types import MarkerDetection
     from learned.adapter import dedupe

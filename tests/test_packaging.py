@@ -60,6 +60,7 @@ def test_installed_package_detects_with_its_shipped_hma_weights(installed):
             "from cpdetect.markers import MarkerSpec, frontal_homography, render_marker\n"
             "assert 'site-packages' in str(a.default_model_dir()), a.default_model_dir()\n"
             "assert a.shipped_weights_present()\n"
+            "assert a.shipped_weights_present('lite')  # the second shipped network\n"
             "assert (a.default_model_dir() / 'SHA256SUMS').is_file()  # the digests checked on loading\n"
             "img = np.full((256, 256), 120.0)\n"
             "spec = MarkerSpec('square', size_m=1.0)\n"
