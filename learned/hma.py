@@ -107,20 +107,20 @@ class HMAConfig:
         return replace(self, **changes)
 
 
+# stem 32, stage1 1x16 -> 64, 1 block per branch; OCR 64/32; heads 32
+_W16_TINY = HMAConfig(backbone=HRNetConfig(stem_width=32, stage1_blocks=1, stage1_planes=16,
+                                           widths=(16, 32, 64, 128), modules=(1, 1, 1), blocks=1),
+                      ocr_mid=64, ocr_key=32, head_bot=32, name="w16_tiny")
+
 PRESETS: dict[str, HMAConfig] = {
     # HRNet-W18-Small-v1 widths, one module per stage, 2 BasicBlocks; OCR 128/64; heads 64 (hma.md 4.2)
     "w18s1_lite": HMAConfig(backbone=HRNetConfig(stem_width=64, stage1_blocks=1, stage1_planes=32,
                                                  widths=(16, 32, 64, 128), modules=(1, 1, 1), blocks=2),
                             ocr_mid=128, ocr_key=64, head_bot=64, name="w18s1_lite"),
-    # stem 32, stage1 1x16 -> 64, 1 block per branch; OCR 64/32; heads 32
-    "w16_tiny": HMAConfig(backbone=HRNetConfig(stem_width=32, stage1_blocks=1, stage1_planes=16,
-                                               widths=(16, 32, 64, 128), modules=(1, 1, 1), blocks=1),
-                          ocr_mid=64, ocr_key=32, head_bot=32, name="w16_tiny"),
+    "w16_tiny": _W16_TINY,
     # w16_tiny with the OCR head's two costliest layers narrowed for the CPU: a 1x1 reduction and
     # a 64-wide auxiliary head
-    "w16_lite": HMAConfig(backbone=HRNetConfig(stem_width=32, stage1_blocks=1, stage1_planes=16,
-                                               widths=(16, 32, 64, 128), modules=(1, 1, 1), blocks=1),
-                          ocr_mid=64, ocr_key=32, ocr_kernel=1, aux_mid=64, head_bot=32, name="w16_lite"),
+    "w16_lite": _W16_TINY.replace(ocr_kernel=1, aux_mid=64, name="w16_lite"),
     # for contract tests: a few thousand parameters
     "test_micro": HMAConfig(backbone=HRNetConfig(stem_width=8, stage1_blocks=1, stage1_planes=4,
                                                  widths=(4, 8, 8, 8), modules=(1, 1, 1), blocks=1),
