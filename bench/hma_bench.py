@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     import cv2
 
     from cpdetect.fileio import write_json_atomic
-    from learned.infer import OpenCVBackend, probability_map
+    from learned.infer import OpenCVBackend, probability_map, processing_image
 
     d = Path(args.model_dir)
     res: dict = {"model_dir": str(d), "cv2": cv2.__version__}
@@ -175,11 +175,7 @@ def run(args: argparse.Namespace) -> int:
                         "after_network_s_median": float(np.median(np.subtract(td, tn))),
                         "detect_process_memory": peak_rss_mb(str(d), str(path))}
             if key == "jpeg_45mp":
-                # the image the detector's network sees (learned.infer.probability_map's downscale)
-                h, w = img.shape
-                f = min(1.0, (det.settings.max_side or max(h, w)) / max(h, w))
-                small = cv2.resize(img, (max(1, int(round(w * f))), max(1, int(round(h * f)))),
-                                   interpolation=cv2.INTER_AREA)
+                small = processing_image(img, det.settings.max_side)  # what the detector's network sees
                 res["network_layers"] = layer_profile(ob, small.astype(np.float32) / 255.0)
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(RESULTS, res, indent=1)

@@ -260,18 +260,23 @@ class ProbabilityMap:
     factor: float
 
 
+def processing_image(gray: np.ndarray, max_side: int | None) -> np.ndarray:
+    """``gray`` area-reduced so that its longer side is at most ``max_side`` (None: as it is): the
+    image the network sees."""
+    h, w = gray.shape[:2]
+    if not max_side or max(h, w) <= max_side:
+        return gray
+    f = max_side / float(max(h, w))
+    return cv2.resize(gray, (max(1, int(round(w * f))), max(1, int(round(h * f)))), interpolation=cv2.INTER_AREA)
+
+
 def probability_map(gray: np.ndarray, backend: TrunkBackend, scales: Sequence[float] = (1.0,),
                     max_side: int | None = 2048, tile: int = 1024, overlap: int = 64) -> ProbabilityMap:
     """P(marker) for a gray uint8 (or float [0, 1]) image, downscaled to ``max_side`` and tiled."""
     if gray.ndim != 2:
         raise ValueError(f"expected a gray (H, W) image, got shape {gray.shape}")
-    h, w = gray.shape
-    f = 1.0
-    if max_side and max(h, w) > max_side:
-        f = max_side / float(max(h, w))
-        img = cv2.resize(gray, (max(1, int(round(w * f))), max(1, int(round(h * f)))), interpolation=cv2.INTER_AREA)
-    else:
-        img = gray
+    w = gray.shape[1]
+    img = processing_image(gray, max_side)
     x = img.astype(np.float32) / 255.0 if img.dtype == np.uint8 else img.astype(np.float32)
     ph, pw = x.shape
     prob = np.empty((ph, pw), np.float32)
@@ -283,5 +288,6 @@ def probability_map(gray: np.ndarray, backend: TrunkBackend, scales: Sequence[fl
     return ProbabilityMap(np.clip(prob, 0.0, 1.0), pw / float(w))
 
 
-__all__ = ["TorchBackend", "OpenCVBackend", "open_backend", "fuse_scales", "probability_map", "ProbabilityMap",
+__all__ = ["TorchBackend", "OpenCVBackend", "open_backend", "fuse_scales", "probability_map", "processing_image",
+           "ProbabilityMap",
            "marker_probability_np", "tiles", "resize_scale_np", "resize_to_np", "torch_available"]

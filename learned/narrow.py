@@ -29,10 +29,9 @@ from .hma import HMAConfig
 def narrow_ocr_state(state: dict[str, torch.Tensor], src: HMAConfig, dst: HMAConfig) -> dict[str, torch.Tensor]:
     """``state`` (a network of config ``src``) with its OCR reduction and auxiliary head made to fit
     ``dst``, which may differ from ``src`` in ``ocr_kernel`` and ``aux_mid`` only."""
-    same = {k: v for k, v in src.to_dict().items() if k not in ("ocr_kernel", "aux_mid", "name")}
-    other = {k: v for k, v in dst.to_dict().items() if k not in ("ocr_kernel", "aux_mid", "name")}
-    if same != other:
-        diff = sorted(k for k in same if same[k] != other.get(k))
+    if src.replace(ocr_kernel=dst.ocr_kernel, aux_mid=dst.aux_mid, name=dst.name) != dst:
+        a, b = src.to_dict(), dst.to_dict()
+        diff = sorted(k for k in a if k not in ("ocr_kernel", "aux_mid", "name") and a[k] != b.get(k))
         raise ValueError(f"the configs differ beyond ocr_kernel and aux_mid: {', '.join(diff)}")
     out = dict(state)
     key = "ocr.conv3x3_ocr.0.weight"
