@@ -160,7 +160,7 @@ def test_an_unverified_centre_must_be_point_symmetric(monkeypatch, sym180, setti
 
 
 def test_the_most_point_symmetric_seeds_are_refined_first():
-    from learned.adapter import _most_symmetric
+    from learned.adapter import _most_symmetric, _seed_symmetry
 
     cx, cy, r, a = 121.3, 133.6, 26.0, 0.5
     img, _, _ = rendered("square", center=(cx, cy), radius=r, angle=a)
@@ -168,11 +168,12 @@ def test_the_most_point_symmetric_seeds_are_refined_first():
     others = [(cx + f * r * math.cos(a + t), cy + f * r * math.sin(a + t), 50.0 - k)
               for k, (f, t) in enumerate([(0.95, 0.0), (0.95, 1.2), (1.0, 0.785), (0.5, 0.3), (0.6, 2.4), (0.9, 3.9)])]
     seeds = others + [(cx + 0.3, cy - 0.2, 5.0)]
-    picked = _most_symmetric(img, seeds, r, 3)
-    assert len(picked) == 3 and picked[0] == seeds[-1]
-    q = [np.subtract(*point_symmetry(img, x, y, r)) for x, y, _ in seeds]
+    q = [_seed_symmetry(img, x, y, r) for x, y, _ in seeds]
+    assert q == [float(np.subtract(*point_symmetry(img, x, y, r))) for x, y, _ in seeds]
     assert q[-1] > 1.6 and max(q[:-1]) < 1.0
-    everything = _most_symmetric(img, seeds, r, 10)
+    picked = _most_symmetric(seeds, q, 3)
+    assert len(picked) == 3 and picked[0] == seeds[-1]
+    everything = _most_symmetric(seeds, q, 10)
     assert sorted(everything) == sorted(seeds)  # all of them when n exceeds the pool, none twice
 
 
@@ -213,3 +214,54 @@ def test_fitting_the_ranker_learns_what_separates_the_candidates():
     assert sum(labels[i] for i in ranked[:50]) >= 48
     with pytest.raises(ValueError, match="20 candidates"):
         fit_centre_ranker(rows[:10], labels[:10])
+
+
+def test_an_unsure_blob_with_nothing_point_symmetric_on_it_is_not_refined(monkeypatch):
+    import cpdetect.refine as R
+    from cpdetect.types import MarkerDetection
+
+    img, mask, _ = rendered("square", center=(121.3, 133.6), radius=26.0, angle=0.5)
+    # a blurred straight edge on a ramp (an occluder's edge): turned 180 degrees about any point on it,
+    # its own negative (sym180 - sym90 about -1; 1.8 at a checker's centre)
+    yy, xx = np.mgrid[:img.shape[0], :img.shape[1]]
+    edge = np.where(0.8 * (xx - 120) + 0.6 * (yy - 130) > 0, 200.0, 60.0).astype(np.float32)
+    texture = np.clip(cv2.GaussianBlur(edge, (0, 0), 1.5) + 0.2 * xx, 0, 255).astype(np.uint8)
+    ranker = _ranker(sym180=3.0, sym90=-3.0, blob_sym=3.0)
+    calls = []
+    real = R.refine_center_coarse_to_fine
+    monkeypatch.setattr(R, "refine_center_coarse_to_fine", lambda *a, **k: calls.append(1) or real(*a, **k))
+
+    def blob_on(image, p_marker, seeds=None, **settings):
+        calls.clear()
+        det = HMADetector.with_backend(SoftBackend(mask.astype(np.float32) * p_marker), _keep_all(), ranker,
+                                       scales=(1.0,), **settings)
+        pm = det.probability(image)
+        (blob,), _ = det.candidates(image, pm.prob, pm.factor, seeds=seeds)
+        return blob, len(calls)
+
+    # an unsure blob (mean P 0.75 < rank_sure_mean_p) on the edge: skipped before any refinement
+    for settings in ({}, {"unsure_min_symmetry": 0.9}):  # the default gate (0.2) and a stricter one
+        blob, n = blob_on(texture, 0.75, **settings)
+        assert blob.hopeless and blob.centre is None and n == 0
+    blob, n = blob_on(texture, 0.75, unsure_min_symmetry=None)  # None: every blob is searched
+    assert not blob.hopeless and n >= 1
+    blob, n = blob_on(texture, 0.97, unsure_min_symmetry=0.9)  # a blob the network is sure of
+    assert not blob.hopeless and n >= 1
+    # a classical marker on the blob is evidence enough to look
+    seed = MarkerDetection(x=121.0, y=133.0, score=1.0, type="square", radius_px=26.0, sigma_px=0.1)
+    blob, n = blob_on(texture, 0.75, seeds=[seed], unsure_min_symmetry=0.9)
+    assert not blob.hopeless and n >= 1
+    # on the marker itself the gate lets the blob through, and it finds the same centre
+    gated, _ = blob_on(img, 0.75, unsure_min_symmetry=0.9)
+    plain, _ = blob_on(img, 0.75)
+    assert not gated.hopeless and (gated.centre.x, gated.centre.y) == (plain.centre.x, plain.centre.y)
+    assert math.hypot(gated.centre.x - 121.3, gated.centre.y - 133.6) < 0.15
+
+
+@pytest.mark.parametrize("value", [2.5, -3.0])
+def test_the_symmetry_gate_setting_is_checked(value):
+    from cpdetect import get_detector
+    from cpdetect.errors import UsageError
+
+    with pytest.raises(UsageError, match="unsure_min_symmetry"):
+        get_detector("hma", unsure_min_symmetry=value)
