@@ -178,7 +178,7 @@ class HMASettings:
     53) skips 33 of the 117. On the fresh test-split sets 11200 / 11300, generated after that rule
     was written, every figure of ``cpdetect eval`` was the same with it as without (557 / 7 and
     576 / 7 markers found / false). It only saves time, on textured photographs: on the textured
-    45 MP bench JPEG it skips 2 of the 7 texture blobs (0.1-0.15 s of 4.5-4.9 s on this machine,
+    45 MP bench JPEG it skips 2 of the 8 texture blobs (0.1-0.15 s of 4.5-4.9 s on this machine,
     within its run-to-run spread).
     min_centre_reach: drop a refined centre where the four sectors do not meet
     (:func:`cpdetect.centre_reach.centre_reach` below this; 0 keeps every one), the classical
