@@ -6,7 +6,8 @@ missed marker, follows what the detector's default settings decide about the blo
 centre (:meth:`learned.adapter.HMADetector.candidates`):
 
 - ``no blob``: P(marker) under the threshold at the true centre;
-- ``blob too small`` / ``blob mean P low``: the blob is dropped before its centre is looked for;
+- ``blob too small`` / ``blob mean P low`` / ``no point-symmetric seed``: the blob is dropped before
+  its centre is looked for (the last: an unsure blob, see ``unsure_min_symmetry``);
 - ``no centre``: no seed on the blob refines to an acceptable X-corner;
 - ``centre on another corner``: the blob's centre lies beyond the match tolerance of the true one;
 - ``instance model``: the instance model's P is under its cut (and no classical marker confirms it);
@@ -49,7 +50,8 @@ def stage_of(det, gray, blobs, labels, f: float, truth) -> dict:
     if b.radius < s.min_radius_px:
         return {**out, "stage": "blob too small"}
     if b.hopeless:
-        return {**out, "stage": "blob mean P low"}
+        low = det.instance_model is not None and b.mean_p < s.min_blob_mean_p
+        return {**out, "stage": "blob mean P low" if low else "no point-symmetric seed"}
     c = b.centre
     if c is None:
         return {**out, "stage": "no centre"}

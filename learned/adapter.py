@@ -167,19 +167,19 @@ class HMASettings:
     holds for a marker). On the textured 45 MP bench image it costs 0.14 s (2.35 -> 2.49 s, same
     markers); applied to the blobs of mean P >= rank_sure_mean_p only it cost nothing there but
     found 1,150 of the 1,266 and on the test sets nothing more.
-    unsure_min_symmetry: a blob whose mean P is under ``rank_sure_mean_p`` gets no centre search at
-    all (it is dropped, as under ``min_blob_mean_p``) when neither its centroid nor any seed of its
-    pool has a sym180 - sym90 (:func:`_seed_symmetry`, 1.8 at a checker's centre) of at least this,
-    measured before any refinement; None (``--set unsure_min_symmetry=null``) refines every such
-    blob. A blob with a classical marker on it is always searched. On the train-split sets dev1111
-    (400 images) and dev1212 (200) and the textured 45 MP bench image, the 24 blobs of mean P under
-    0.85 that the instance model kept had a best symmetry of 0.53 or more, the 93 it dropped from
-    -0.35 up; 0.2 (the largest tenth at least 0.3 under 0.53, by the rule written for it in stop
-    53) skips 33 of the 117. On the fresh test-split sets 11200 / 11300, generated after that rule
-    was written, every figure of ``cpdetect eval`` was the same with it as without (557 / 7 and
-    576 / 7 markers found / false). It only saves time, on textured photographs: on the textured
-    45 MP bench JPEG it skips 2 of the 8 texture blobs (0.1-0.15 s of 4.5-4.9 s on this machine,
-    within its run-to-run spread).
+    unsure_min_symmetry: with the centre ranker, a blob whose mean P is under ``rank_sure_mean_p``
+    gets no centre search at all (it is dropped, as under ``min_blob_mean_p``) when neither its
+    centroid nor any seed of its pool has a sym180 - sym90 (:func:`_seed_symmetry`, 1.8 at a
+    checker's centre) of at least this, measured before any refinement; None (``--set
+    unsure_min_symmetry=null``) refines every such blob. A blob with a classical marker on it is
+    always searched. On the train-split sets dev1111 (400 images) and dev1212 (200) and the textured
+    45 MP bench image, the 24 blobs of mean P under 0.85 that the instance model kept had a best
+    symmetry of 0.53 or more, the 93 it dropped from -0.35 up; 0.2 (the largest tenth at least 0.3
+    under 0.53, by the rule written for it in stop 53) skips 33 of the 117. On the fresh test-split
+    sets 11200 / 11300, generated after that rule was written, every figure of ``cpdetect eval`` was
+    the same with it as without (557 / 7 and 576 / 7 markers found / false). It only saves time, on
+    textured photographs: on the textured 45 MP bench JPEG it skips 2 of the 8 texture blobs
+    (0.1-0.15 s of 4.5-4.9 s on this machine, within its run-to-run spread).
     min_centre_reach: drop a refined centre where the four sectors do not meet
     (:func:`cpdetect.centre_reach.centre_reach` below this; 0 keeps every one), the classical
     detector's cut.

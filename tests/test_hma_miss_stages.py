@@ -42,3 +42,24 @@ def test_a_blob_whose_centre_is_elsewhere_is_named():
     # a true marker said to lie 6 px from the centre the blob yields, still on the blob
     got = _stages(det, img)(first[0] + 6.0, first[1], 22.0)
     assert got["stage"] == "centre on another corner" and 5.9 < got["centre_offset_px"] < 6.1
+
+
+def test_an_unsure_blob_with_nothing_point_symmetric_is_named():
+    import cv2
+    import numpy as np
+    from test_centre_choice import _keep_all, _ranker
+    from test_learned_detector import SoftBackend, rendered
+
+    _, mask, _ = rendered("square", center=(121.3, 133.6), radius=26.0, angle=0.5)
+    # a blurred straight edge under a blob the network is unsure of (mean P 0.75)
+    yy, xx = np.mgrid[:mask.shape[0], :mask.shape[1]]
+    edge = np.where(0.8 * (xx - 120) + 0.6 * (yy - 130) > 0, 200.0, 60.0).astype(np.float32)
+    img = np.clip(cv2.GaussianBlur(edge, (0, 0), 1.5) + 0.2 * xx, 0, 255).astype(np.uint8)
+    ranker = _ranker(sym180=3.0, sym90=-3.0, blob_sym=3.0)
+    det = HMADetector.with_backend(SoftBackend(mask.astype(np.float32) * 0.75), _keep_all(), ranker,
+                                   scales=(1.0,), mirror_map="never")
+    got = _stages(det, img)(121.3, 133.6, 26.0)
+    assert got["stage"] == "no point-symmetric seed" and 0.7 < got["blob_mean_p"] < 0.8
+    low = HMADetector.with_backend(SoftBackend(mask.astype(np.float32) * 0.55), _keep_all(), ranker,
+                                   scales=(1.0,), mirror_map="never")
+    assert _stages(low, img)(121.3, 133.6, 26.0)["stage"] == "blob mean P low"
