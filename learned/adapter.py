@@ -905,7 +905,8 @@ class HMADetector:
             on_blob = [(px, py, 1.0) for px, py in ex[inside(ex[:, 0], ex[:, 1])]]
         gate = min_symmetry is not None and not on_blob
         q = [_seed_symmetry(gray, x, y, radius) for x, y, _ in xs] if gate or (pool and len(xs) > n_seeds) else None
-        if gate and max(q + [_seed_symmetry(gray, centroid[0], centroid[1], radius)]) < min_symmetry:
+        if gate and max(q, default=-2.0) < min_symmetry \
+                and _seed_symmetry(gray, centroid[0], centroid[1], radius) < min_symmetry:
             return None
         if pool and len(xs) > n_seeds:
             xs = _most_symmetric(xs, q, n_seeds)

@@ -216,16 +216,21 @@ def test_fitting_the_ranker_learns_what_separates_the_candidates():
         fit_centre_ranker(rows[:10], labels[:10])
 
 
+def _edge_image(shape: tuple[int, int]) -> np.ndarray:
+    """A blurred straight edge on a ramp (an occluder's edge) through about (120, 130): turned 180
+    degrees about any point on it, its own negative (sym180 - sym90 about -1; 1.8 at a checker's
+    centre)."""
+    yy, xx = np.mgrid[:shape[0], :shape[1]]
+    edge = np.where(0.8 * (xx - 120) + 0.6 * (yy - 130) > 0, 200.0, 60.0).astype(np.float32)
+    return np.clip(cv2.GaussianBlur(edge, (0, 0), 1.5) + 0.2 * xx, 0, 255).astype(np.uint8)
+
+
 def test_an_unsure_blob_with_nothing_point_symmetric_on_it_is_not_refined(monkeypatch):
     import cpdetect.refine as R
     from cpdetect.types import MarkerDetection
 
     img, mask, _ = rendered("square", center=(121.3, 133.6), radius=26.0, angle=0.5)
-    # a blurred straight edge on a ramp (an occluder's edge): turned 180 degrees about any point on it,
-    # its own negative (sym180 - sym90 about -1; 1.8 at a checker's centre)
-    yy, xx = np.mgrid[:img.shape[0], :img.shape[1]]
-    edge = np.where(0.8 * (xx - 120) + 0.6 * (yy - 130) > 0, 200.0, 60.0).astype(np.float32)
-    texture = np.clip(cv2.GaussianBlur(edge, (0, 0), 1.5) + 0.2 * xx, 0, 255).astype(np.uint8)
+    texture = _edge_image(img.shape)
     ranker = _ranker(sym180=3.0, sym90=-3.0, blob_sym=3.0)
     calls = []
     real = R.refine_center_coarse_to_fine

@@ -45,16 +45,12 @@ def test_a_blob_whose_centre_is_elsewhere_is_named():
 
 
 def test_an_unsure_blob_with_nothing_point_symmetric_is_named():
-    import cv2
     import numpy as np
-    from test_centre_choice import _keep_all, _ranker
+    from test_centre_choice import _edge_image, _keep_all, _ranker
     from test_learned_detector import SoftBackend, rendered
 
     _, mask, _ = rendered("square", center=(121.3, 133.6), radius=26.0, angle=0.5)
-    # a blurred straight edge under a blob the network is unsure of (mean P 0.75)
-    yy, xx = np.mgrid[:mask.shape[0], :mask.shape[1]]
-    edge = np.where(0.8 * (xx - 120) + 0.6 * (yy - 130) > 0, 200.0, 60.0).astype(np.float32)
-    img = np.clip(cv2.GaussianBlur(edge, (0, 0), 1.5) + 0.2 * xx, 0, 255).astype(np.uint8)
+    img = _edge_image(mask.shape)  # under a blob the network is unsure of (mean P 0.75)
     ranker = _ranker(sym180=3.0, sym90=-3.0, blob_sym=3.0)
     det = HMADetector.with_backend(SoftBackend(mask.astype(np.float32) * 0.75), _keep_all(), ranker,
                                    scales=(1.0,), mirror_map="never")
