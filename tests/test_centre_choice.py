@@ -245,7 +245,7 @@ def test_an_unsure_blob_with_nothing_point_symmetric_on_it_is_not_refined(monkey
         return blob, len(calls)
 
     # an unsure blob (mean P 0.75 < rank_sure_mean_p) on the edge: skipped before any refinement
-    for settings in ({}, {"unsure_min_symmetry": 0.9}):  # the default gate (0.2) and a stricter one
+    for settings in ({}, {"unsure_min_symmetry": 0.9}):  # the default gate (0.5) and a stricter one
         blob, n = blob_on(texture, 0.75, **settings)
         assert blob.hopeless and blob.centre is None and n == 0
     blob, n = blob_on(texture, 0.75, unsure_min_symmetry=None)  # None: every blob is searched
@@ -261,6 +261,14 @@ def test_an_unsure_blob_with_nothing_point_symmetric_on_it_is_not_refined(monkey
     plain, _ = blob_on(img, 0.75)
     assert not gated.hopeless and (gated.centre.x, gated.centre.y) == (plain.centre.x, plain.centre.y)
     assert math.hypot(gated.centre.x - 121.3, gated.centre.y - 133.6) < 0.15
+    # a blob whose best symmetry lies between stop 53's cut (0.2) and the default since stop 54 (0.5)
+    import learned.adapter as A
+
+    monkeypatch.setattr(A, "_seed_symmetry", lambda *a: 0.35)
+    blob, n = blob_on(img, 0.75)
+    assert blob.hopeless and n == 0
+    blob, n = blob_on(img, 0.75, unsure_min_symmetry=0.2)
+    assert not blob.hopeless and n >= 1
 
 
 @pytest.mark.parametrize("value", [2.5, -3.0])
