@@ -155,7 +155,8 @@ def detect_batch(jobs: Sequence[BatchJob], detector_name: str, settings: dict, o
     try:
         parts.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise cannot_write(exc, parts) from None
+        # name the output the user gave, unless the parts folder's own name is what is taken
+        raise cannot_write(exc, parts if parts.exists() else out) from None
     try:
         return _run_batch(jobs, detector_name, settings, out, parts, workers, skip_bad, progress, scheduler,
                           executor)

@@ -245,9 +245,9 @@ def test_read_only_output_folder(cli, tmp_path, marker_jpeg, read_only_dir):
     assert files_under(read_only_dir) == []
 
 
-@pytest.mark.parametrize("case", ["output is a folder", "output under a file", "missing input",
-                                  "folder without images", "workers 0", "unknown detector", "unknown setting",
-                                  "setting of the wrong type"])
+@pytest.mark.parametrize("case", ["output is a folder", "output under a file", "parts folder's name taken",
+                                  "missing input", "folder without images", "workers 0", "unknown detector",
+                                  "unknown setting", "setting of the wrong type"])
 def test_detect_requests(cli, tmp_path, marker_jpeg, case):
     (tmp_path / "afile").write_text("x")
     (tmp_path / "empty").mkdir()
@@ -259,7 +259,12 @@ def test_detect_requests(cli, tmp_path, marker_jpeg, case):
         named = [out, "is a folder"]
     elif case == "output under a file":
         out = tmp_path / "afile" / "det.json"
-        named = [tmp_path / "afile", "is a file, not a folder"]
+        # the output the user gave is named, not the resumable parts folder beside it
+        named = [f"{out}: cannot write here: {tmp_path / 'afile'} is a file, not a folder"]
+    elif case == "parts folder's name taken":
+        (tmp_path / "det.json.parts").write_text("x")
+        out = tmp_path / "det.json"
+        named = [f"{out}.parts: cannot write here"]
     elif case == "missing input":
         inp = tmp_path / "absent.jpg"
         named = [inp, "not found"]
