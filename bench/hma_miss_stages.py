@@ -50,8 +50,7 @@ def stage_of(det, gray, blobs, labels, f: float, truth) -> dict:
     if b.radius < s.min_radius_px:
         return {**out, "stage": "blob too small"}
     if b.hopeless:
-        low = det.instance_model is not None and b.mean_p < s.min_blob_mean_p
-        return {**out, "stage": "blob mean P low" if low else "no point-symmetric seed"}
+        return {**out, "stage": b.hopeless}  # the detector's own words for why it dropped the blob
     c = b.centre
     if c is None:
         return {**out, "stage": "no centre"}

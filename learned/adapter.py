@@ -699,7 +699,7 @@ class HMADetector:
             if radius < s.min_radius_px or s.refine == "none":
                 continue
             if self.instance_model is not None and blob.mean_p < s.min_blob_mean_p:
-                blob.hopeless = True  # the instance model would not keep it (see HMASettings)
+                blob.hopeless = "blob mean P low"  # the instance model would not keep it (see HMASettings)
                 continue
             if self.centre_ranker is not None or self.collect_options:
                 sure = blob.mean_p >= s.rank_sure_mean_p or self.collect_options
@@ -707,7 +707,7 @@ class HMADetector:
                                                s.rank_seeds if sure else min(s.rank_seeds, s.rank_seeds_unsure),
                                                s.seed_pool, None if sure else s.unsure_min_symmetry)
                 if options is None:
-                    blob.hopeless = True  # nothing on it is point-symmetric (see unsure_min_symmetry)
+                    blob.hopeless = "no point-symmetric seed"  # see unsure_min_symmetry
                     continue
                 blob.options = options
             if self.centre_ranker is not None:
@@ -907,11 +907,12 @@ class HMADetector:
             ex = np.array(extra, float)
             on_blob = [(px, py, 1.0) for px, py in ex[inside(ex[:, 0], ex[:, 1])]]
         gate = min_symmetry is not None and not on_blob
-        q = [_seed_symmetry(gray, x, y, radius) for x, y, _ in xs] if gate or (pool and len(xs) > n_seeds) else None
+        narrow = pool and len(xs) > n_seeds
+        q = [_seed_symmetry(gray, x, y, radius) for x, y, _ in xs] if gate or narrow else None
         if gate and max(q, default=-2.0) < min_symmetry \
                 and _seed_symmetry(gray, centroid[0], centroid[1], radius) < min_symmetry:
             return None
-        if pool and len(xs) > n_seeds:
+        if narrow:
             xs = _most_symmetric(xs, q, n_seeds)
         seeds = [(centroid[0], centroid[1], 0.0)] + on_blob
         seeds += [(x, y, c / strongest) for x, y, c in xs]
@@ -995,7 +996,9 @@ class BlobCandidate:
     centroid: tuple[float, float]
     centre: "_Centre | None" = None
     features: dict | None = None
-    hopeless: bool = False  # dropped unrefined: its mean P is below min_blob_mean_p
+    # why it was dropped unrefined, "" when it was not: "blob mean P low" (under min_blob_mean_p) or
+    # "no point-symmetric seed" (an unsure blob, see unsure_min_symmetry)
+    hopeless: str = ""
     options: list = dataclasses.field(default_factory=list)  # (_Centre, features, ranker score) when ranked
 
 
