@@ -92,7 +92,13 @@ class HMASettings:
     per image; on fresh test-split seeds 11000 / 11100, with ``rank_seeds_unsure=1``, instance F1
     0.964 / 0.960, pixel IoU 0.916 / 0.935, centre 0.067 / 0.074 px mean, where the default gave
     0.961 / 0.962, 0.916 / 0.943, 0.062 / 0.065; not the default: it failed the rule written for that
-    on 11100's pixel IoU and centre; learned/weights/default/TRAINING.md). scales: inference scales (must contain 1.0, each in (0, 4]),
+    on 11100's pixel IoU and centre; learned/weights/default/TRAINING.md). large_network: the
+    shipped network for an image the network sees downscaled (longest side over ``max_side``, e.g.
+    a 45 MP photograph), None = ``network`` for every image; ignored with ``model_dir`` (a folder of
+    the user's goes to every image); the instance model and centre ranker stay those of ``network``.
+    ``large_network=lite`` (stop 55, opt-in) took 26-31 % off the time of two fresh 45 MP sets but
+    failed its rule on one of them (seed 12100: pixel IoU 0.834 against 0.878, a covered marker
+    found 9 px off; TRAINING.md). scales: inference scales (must contain 1.0, each in (0, 4]),
     default (0.5, 1.0): two-scale HMA, as trained; (1.0,) is faster. small_scales: the scales for an
     image small enough that its largest pass fits in ``max_side`` (default (0.5, 1.0, 1.5, 2.0), so up
     to 1024 px for the default max_side; None = always ``scales``): the 2.0 pass shows the network
@@ -183,6 +189,18 @@ class HMASettings:
     fresh seeds 11400 / 11500 existed: there too every figure and every image's found / false / missed
     count stayed the same against 0.2 (571 / 7 and 634 / 1 markers found / false). It only saves time,
     on textured photographs (the bench JPEG: see TRAINING.md).
+    min_seed_symmetry: with the centre ranker, an X-corner seed of any blob (not the centroid, not a
+    classical marker on the blob) whose sym180 - sym90 (:func:`_seed_symmetry`, before any
+    refinement) is under this is not refined; None refines them all (the seeds are still the most
+    point-symmetric ``rank_seeds`` of the ``seed_pool``). A seed with nothing point-symmetric about it
+    is an outline's corner or texture, and on a large marker each refinement costs 40-300 ms. 0.0
+    since stop 55: the largest tenth at most 0.019, the least symmetry of an X-corner seed whose
+    refinement became a found marker's centre on 400 train-split images (dev1111 / dev1212, 63 such
+    seeds, the next 0.31); there it skips 409 of 1,690 refinements. By a rule written before the
+    fresh sets existed: test-split 11700 587 / 6 found / false against 588 / 6 (one covered marker,
+    0.57 px off before, lost), every other figure within 0.001; 11800 every figure the same; a fresh
+    45 MP set (11900, 24 images) the same markers and centres at 78.3 against 82.1 s in all, the
+    slowest image 4.1 against 5.5 s (TRAINING.md).
     min_centre_reach: drop a refined centre where the four sectors do not meet
     (:func:`cpdetect.centre_reach.centre_reach` below this; 0 keeps every one), the classical
     detector's cut.
@@ -257,6 +275,7 @@ class HMASettings:
 
     model_dir: str | None = None
     network: str = "default"
+    large_network: str | None = None
     scales: tuple[float, ...] = (0.5, 1.0)
     small_scales: tuple[float, ...] | None = (0.5, 1.0, 1.5, 2.0)
     backend: str = "auto"
@@ -291,6 +310,7 @@ class HMASettings:
     rank_stop_model: float = 0.5
     seed_pool: int = 24
     unsure_min_symmetry: float | None = 0.5
+    min_seed_symmetry: float | None = 0.0
     outline_window: float = 1.0
     model_fit: bool = True
     mirror_map: str = "small"
@@ -299,6 +319,8 @@ class HMASettings:
     def __post_init__(self) -> None:
         object.__setattr__(self, "scales", tuple(float(s) for s in self.scales))
         default_model_dir(self.network)  # refuses a name that is not a shipped network
+        if self.large_network is not None:
+            default_model_dir(self.large_network)
         # a pass at scale s holds s^2 times a tile's pixels: 50 asked 19 GB of one 1024-px tile
         if 1.0 not in self.scales or min(self.scales) <= 0 or max(self.scales) > MAX_SCALE:
             raise ValueError(f"scales must be in (0, {MAX_SCALE:g}] and include 1.0, got {self.scales}")
@@ -316,6 +338,8 @@ class HMASettings:
             raise ValueError("need rank_seeds, rank_seeds_unsure, seed_pool >= 0 and 0 < rank_stop <= 1")
         if self.unsure_min_symmetry is not None and not -2.0 <= self.unsure_min_symmetry <= 2.0:
             raise ValueError("unsure_min_symmetry must be in [-2, 2] (or None)")
+        if self.min_seed_symmetry is not None and not -2.0 <= self.min_seed_symmetry <= 2.0:
+            raise ValueError("min_seed_symmetry must be in [-2, 2] (or None)")
         if not -1.0 <= self.min_sym180_unverified <= 1.0:
             raise ValueError("min_sym180_unverified must be in [-1, 1]")
         if not 0.0 <= self.rank_stop_model <= 1.0:
@@ -536,6 +560,13 @@ class HMADetector:
 
         self.model_dir = model_dir
         self.backend = open_backend(model_dir, s.backend, s.device, s.threads)
+        self.large_backend = None
+        if s.large_network is not None and s.model_dir is None and default_model_dir(s.large_network) != model_dir:
+            if not shipped_weights_present(s.large_network):
+                from cpdetect.errors import UsageError
+
+                raise UsageError(f"the shipped hma weights are missing ({default_model_dir(s.large_network)})")
+            self.large_backend = open_backend(default_model_dir(s.large_network), s.backend, s.device, s.threads)
         self.instance_model = load_instance_model(model_dir) if s.instance_model == "auto" else None
         ranker = load_centre_ranker(model_dir) if s.centre_ranker == "auto" else None
         self.centre_ranker = ranker if self.instance_model is not None else None
@@ -551,6 +582,7 @@ class HMADetector:
         self.settings = settings_from_dataclass(HMASettings, settings)
         self.model_dir = None
         self.backend = backend
+        self.large_backend = None
         self.instance_model = instances if self.settings.instance_model == "auto" else None
         use_ranker = self.instance_model is not None and self.settings.centre_ranker == "auto"
         self.centre_ranker = ranker if use_ranker else None
@@ -584,12 +616,20 @@ class HMADetector:
             return mode == "always"
         return s.small_scales is not None and self.scales_for(width, height) == s.small_scales
 
+    def backend_for(self, width: int, height: int):
+        """The network for an image of this size: ``large_network``'s where the image is seen
+        downscaled (longest side over ``max_side``) and one is set, else the detector's own."""
+        m = self.settings.max_side
+        if self.large_backend is not None and m is not None and max(width, height) > m:
+            return self.large_backend
+        return self.backend
+
     def probability(self, gray: np.ndarray):
         from .infer import probability_map
 
         s = self.settings
-        scales = self.scales_for(gray.shape[1], gray.shape[0])
-        return probability_map(gray, self.backend, scales, s.max_side, s.tile, s.overlap)
+        h, w = gray.shape[:2]
+        return probability_map(gray, self.backend_for(w, h), self.scales_for(w, h), s.max_side, s.tile, s.overlap)
 
     def detect(self, image: Any) -> DetectionResult:
         t0 = time.perf_counter()
@@ -607,7 +647,8 @@ class HMADetector:
             # no marker of the least radius fits (as the classical detector finds): nothing, not an error
             return DetectionResult(detections=[], image_size=(w, h), probability=np.zeros((h, w), np.float32),
                                    seconds=time.perf_counter() - t0,
-                                   extras={"backend": self.backend.name, "scales": [], "probability_factor": 1.0})
+                                   extras={"backend": self.backend.name, "scales": [], "probability_factor": 1.0,
+                                           "network": self._network_for(w, h)})
         pm = self.probability(gray)
         witnesses = classical.detections if s.classical_markers else None
         dets, prob = self._instances(gray, pm.prob, pm.factor, seeds, witnesses)
@@ -627,8 +668,17 @@ class HMADetector:
         return DetectionResult(detections=dets, image_size=(w, h), probability=prob,
                                seconds=time.perf_counter() - t0,
                                extras={"backend": self.backend.name, "scales": list(self.scales_for(w, h)),
+                                       "network": self._network_for(w, h),
                                        "probability_factor": pm.factor, "mirrored_map": mirrored,
                                        "colour_found": colour_found})
+
+    def _network_for(self, width: int, height: int) -> str:
+        """The name of the network an image of this size goes through: a shipped one's name, or
+        "model_dir" for a folder given by the user (or a backend given to :meth:`with_backend`)."""
+        s = self.settings
+        if self.backend_for(width, height) is self.large_backend:
+            return s.large_network
+        return "model_dir" if s.model_dir or self.model_dir is None else s.network
 
     def _colour_instances(self, paint_of: Callable[[], np.ndarray | None], network: np.ndarray, f: float,
                           dets: list[MarkerDetection], prob: np.ndarray, seeds: list[MarkerDetection] | None,
@@ -883,7 +933,8 @@ class HMADetector:
                         min_symmetry: float | None = None) -> list[tuple["_Centre", dict, float]] | None:
         """The centre candidates of component ``k`` for the ranker: the centroid, the classical
         detector's markers on it (``extra``) and up to ``n_seeds`` X-corner seeds (the most point-
-        symmetric of the ``pool`` strongest when ``pool`` exceeds ``n_seeds``), each refined (kept
+        symmetric of the ``pool`` strongest when ``pool`` exceeds ``n_seeds``; none under the
+        setting ``min_seed_symmetry``), each refined (kept
         when ok with sigma <= max(max_sigma_verified_px, max_sigma_seed_px), duplicates within a
         pixel dropped), with its :func:`learned.centre_choice.candidate_features` and the ranker's
         score (0 without one). With a ranker, stops after the first scored at least ``rank_stop``.
@@ -908,10 +959,13 @@ class HMADetector:
             on_blob = [(px, py, 1.0) for px, py in ex[inside(ex[:, 0], ex[:, 1])]]
         gate = min_symmetry is not None and not on_blob
         narrow = pool and len(xs) > n_seeds
-        q = [_seed_symmetry(gray, x, y, radius) for x, y, _ in xs] if gate or narrow else None
+        floor = s.min_seed_symmetry
+        q = [_seed_symmetry(gray, x, y, radius) for x, y, _ in xs] if gate or narrow or floor is not None else None
         if gate and max(q, default=-2.0) < min_symmetry \
                 and _seed_symmetry(gray, centroid[0], centroid[1], radius) < min_symmetry:
             return None
+        if floor is not None:  # before the narrowing, which keeps the most symmetric: the same seeds survive
+            xs, q = [p for p, v in zip(xs, q) if v >= floor], [v for v in q if v >= floor]
         if narrow:
             xs = _most_symmetric(xs, q, n_seeds)
         seeds = [(centroid[0], centroid[1], 0.0)] + on_blob

@@ -225,16 +225,17 @@ def _edge_image(shape: tuple[int, int]) -> np.ndarray:
     return np.clip(cv2.GaussianBlur(edge, (0, 0), 1.5) + 0.2 * xx, 0, 255).astype(np.uint8)
 
 
-def test_an_unsure_blob_with_nothing_point_symmetric_on_it_is_not_refined(monkeypatch):
+def _blob_search(monkeypatch):
+    """A square marker (centre (121.3, 133.6), radius 26), the edge image of its size, and
+    ``blob_on(image, p_marker, seeds=None, **settings)``: the one blob of the marker's mask at P =
+    ``p_marker`` searched on ``image`` by the centre ranker, with the seeds refined (x, y) in order."""
     import cpdetect.refine as R
-    from cpdetect.types import MarkerDetection
 
     img, mask, _ = rendered("square", center=(121.3, 133.6), radius=26.0, angle=0.5)
-    texture = _edge_image(img.shape)
     ranker = _ranker(sym180=3.0, sym90=-3.0, blob_sym=3.0)
     calls = []
     real = R.refine_center_coarse_to_fine
-    monkeypatch.setattr(R, "refine_center_coarse_to_fine", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(R, "refine_center_coarse_to_fine", lambda *a, **k: calls.append(a[1:3]) or real(*a, **k))
 
     def blob_on(image, p_marker, seeds=None, **settings):
         calls.clear()
@@ -242,6 +243,18 @@ def test_an_unsure_blob_with_nothing_point_symmetric_on_it_is_not_refined(monkey
                                        scales=(1.0,), **settings)
         pm = det.probability(image)
         (blob,), _ = det.candidates(image, pm.prob, pm.factor, seeds=seeds)
+        return blob, list(calls)
+
+    return img, _edge_image(img.shape), blob_on
+
+
+def test_an_unsure_blob_with_nothing_point_symmetric_on_it_is_not_refined(monkeypatch):
+    from cpdetect.types import MarkerDetection
+
+    img, texture, search = _blob_search(monkeypatch)
+
+    def blob_on(image, p_marker, seeds=None, **settings):
+        blob, calls = search(image, p_marker, seeds, **settings)
         return blob, len(calls)
 
     # an unsure blob (mean P 0.75 < rank_sure_mean_p) on the edge: skipped before any refinement
@@ -271,6 +284,35 @@ def test_an_unsure_blob_with_nothing_point_symmetric_on_it_is_not_refined(monkey
     assert not blob.hopeless and n >= 1
 
 
+def test_seeds_with_nothing_point_symmetric_about_them_are_not_refined(monkeypatch):
+    from cpdetect.types import MarkerDetection
+
+    img, texture, search = _blob_search(monkeypatch)
+
+    def blob_on(image, seeds=None, **settings):
+        # a blob the network is sure of (mean P 0.97): the unsure-blob gate does not apply
+        return search(image, 0.97, seeds, **settings)
+
+    # on the edge (sym180 - sym90 about -1 everywhere) every X-corner seed is refined without the cut,
+    # and only the centroid with it: at the default (0.0 since stop 55) as at 0.5
+    _, plain = blob_on(texture, min_seed_symmetry=None)
+    for settings in ({}, {"min_seed_symmetry": 0.5}):
+        blob, cut = blob_on(texture, **settings)
+        assert len(plain) >= 3 and len(cut) == 1 and cut[0] == plain[0]
+        assert not blob.hopeless  # the blob itself is still searched (its centroid)
+    _, low = blob_on(texture, min_seed_symmetry=-1.9)  # a cut under every seed changes nothing
+    assert low == plain
+    # a classical marker on the blob is refined whatever its symmetry
+    seed = MarkerDetection(x=121.0, y=133.0, score=1.0, type="square", radius_px=26.0, sigma_px=0.1)
+    _, with_seed = blob_on(texture, seeds=[seed], min_seed_symmetry=0.5)
+    assert len(with_seed) == 2 and with_seed[1] == (121.0, 133.0)
+    # on the marker the centre is the same with the cut as without
+    a, _ = blob_on(img, min_seed_symmetry=None)
+    b, _ = blob_on(img)
+    assert (a.centre.x, a.centre.y) == (b.centre.x, b.centre.y)
+    assert math.hypot(b.centre.x - 121.3, b.centre.y - 133.6) < 0.15
+
+
 @pytest.mark.parametrize("value", [2.5, -3.0])
 def test_the_symmetry_gate_setting_is_checked(value):
     from cpdetect import get_detector
@@ -278,3 +320,5 @@ def test_the_symmetry_gate_setting_is_checked(value):
 
     with pytest.raises(UsageError, match="unsure_min_symmetry"):
         get_detector("hma", unsure_min_symmetry=value)
+    with pytest.raises(UsageError, match="min_seed_symmetry"):
+        get_detector("hma", min_seed_symmetry=value)

@@ -356,6 +356,33 @@ def test_the_lite_network_is_its_own_folder_with_its_digests_and_a_narrow_head()
         get_detector("hma", network="huge")
 
 
+@pytest.mark.skipif(not shipped_weights_present("lite"), reason="the shipped lite hma weights (learned/weights/lite) are absent")
+def test_large_network_takes_the_images_seen_downscaled_only():
+    from cpdetect.errors import UsageError
+
+    rng = np.random.default_rng(5)
+    small = rng.integers(0, 255, (96, 160), dtype=np.uint8)
+    large = cv2.resize(small, (1200, 720), interpolation=cv2.INTER_LINEAR)  # over max_side=512 below
+    both = HMADetector(large_network="lite", backend="opencv", max_side=512, small_scales=None, scales=(1.0,))
+    plain = HMADetector(backend="opencv", max_side=512, small_scales=None, scales=(1.0,))
+    lite = HMADetector(network="lite", backend="opencv", max_side=512, small_scales=None, scales=(1.0,))
+    assert both.backend_for(160, 96) is both.backend and both.backend_for(1200, 720) is both.large_backend
+    np.testing.assert_array_equal(both.probability(small).prob, plain.probability(small).prob)
+    np.testing.assert_array_equal(both.probability(large).prob, lite.probability(large).prob)
+    assert not np.array_equal(both.probability(large).prob, plain.probability(large).prob)
+    assert both.detect(large).extras["network"] == "lite" and both.detect(small).extras["network"] == "default"
+    assert plain.detect(large).extras["network"] == "default"
+    # the same network twice opens one backend; no max_side means no image is seen downscaled
+    same = HMADetector(large_network="default", backend="opencv")
+    assert same.large_backend is None
+    own = HMADetector(large_network="lite", model_dir=str(both.model_dir), backend="opencv")
+    assert own.large_backend is None and own.detect(large).extras["network"] == "model_dir"
+    unbounded = HMADetector(large_network="lite", backend="opencv", max_side=None)
+    assert unbounded.backend_for(8192, 5460) is unbounded.backend
+    with pytest.raises((ValueError, UsageError), match="network must be one of default, lite"):
+        get_detector("hma", large_network="huge")
+
+
 def test_dedupe_keeps_one_detection_per_x_corner():
     from cpdetect.types import MarkerDetection
     from learned.adapter import dedupe
