@@ -379,7 +379,7 @@ def test_large_network_takes_the_images_seen_downscaled_only():
     assert own.large_backend is None and own.detect(large).extras["network"] == "model_dir"
     unbounded = HMADetector(large_network="lite", backend="opencv", max_side=None)
     assert unbounded.backend_for(8192, 5460) is unbounded.backend
-    with pytest.raises((ValueError, UsageError), match="network must be one of default, lite"):
+    with pytest.raises((ValueError, UsageError), match="large_network must be one of default, lite, got 'huge'"):
         get_detector("hma", large_network="huge")
 
 
