@@ -80,6 +80,16 @@ def shipped_weights_present(network: str = "default") -> bool:
     return (d / "config.json").exists() and ((d / "model.pt").exists() or (d / "model.onnx").exists())
 
 
+def _shipped_folder(network: str) -> Path:
+    """:func:`default_model_dir`, refused with a one-line UsageError when its weights are missing."""
+    if not shipped_weights_present(network):
+        from cpdetect.errors import UsageError
+
+        raise UsageError(f"the shipped hma weights are missing ({default_model_dir(network)}); "
+                         "pass model_dir=... (a folder written by 'cpdetect train')")
+    return default_model_dir(network)
+
+
 MAX_SCALE = 4.0  # the largest inference scale: twice the paper's largest (2.0)
 
 
@@ -550,23 +560,14 @@ class HMADetector:
     def __init__(self, **settings: Any):
         self.settings: HMASettings = settings_from_dataclass(HMASettings, settings)
         s = self.settings
-        model_dir = Path(s.model_dir) if s.model_dir else default_model_dir(s.network)
-        if s.model_dir is None and not shipped_weights_present(s.network):
-            from cpdetect.errors import UsageError
-
-            raise UsageError(f"the shipped hma weights are missing ({model_dir}); "
-                             "pass model_dir=... (a folder written by 'cpdetect train')")
+        model_dir = Path(s.model_dir) if s.model_dir else _shipped_folder(s.network)
         from .infer import open_backend
 
         self.model_dir = model_dir
         self.backend = open_backend(model_dir, s.backend, s.device, s.threads)
         self.large_backend = None
-        if s.large_network is not None and s.model_dir is None and default_model_dir(s.large_network) != model_dir:
-            if not shipped_weights_present(s.large_network):
-                from cpdetect.errors import UsageError
-
-                raise UsageError(f"the shipped hma weights are missing ({default_model_dir(s.large_network)})")
-            self.large_backend = open_backend(default_model_dir(s.large_network), s.backend, s.device, s.threads)
+        if s.large_network is not None and s.model_dir is None and s.large_network != s.network:
+            self.large_backend = open_backend(_shipped_folder(s.large_network), s.backend, s.device, s.threads)
         self.instance_model = load_instance_model(model_dir) if s.instance_model == "auto" else None
         ranker = load_centre_ranker(model_dir) if s.centre_ranker == "auto" else None
         self.centre_ranker = ranker if self.instance_model is not None else None
