@@ -45,7 +45,9 @@ Pipeline for one image:
    of its grey levels, about as strong, lies 0.4-1.7 radii away (the single-saddle test); since
    2026-11-27 only one whose sector edges run along the centre's, as on one checker's grid, or a
    marker found already (``saddle_axes``: a saddle of the wall's texture at another angle had
-   refused 4 true markers on the train-split dev sets).
+   refused 4 true markers on the train-split dev sets). Of those neighbours, the eight whose
+   contrast is most like the candidate's are tried (``saddle_order``): under a shadow across a
+   checkerboard, the strongest ones lie in the sun and fail the level comparison.
 4. **Type** in the frame of the checker lines (:func:`type_residuals`): a sector's boundary points,
    divided by the outline's extents along its two bounding lines, lie on the unit L1 ball for a
    diagonal, L2 for a circle, L-infinity for a square, in any affine view (train-split sets: type
@@ -129,6 +131,7 @@ RETRY_RING_FRACS = (0.12, 0.06, 0.25)
 # how far (degrees) a neighbouring X-corner's sector edges may turn from a marker centre's and still
 # count as the same checker's grid in the single-saddle test (see ClassicalSettings.saddle_axes)
 AXES_TOLERANCE_DEG = 12.0
+SADDLE_ORDERS = ("strongest", "alike")
 
 
 def candidate_score(feats: dict) -> np.ndarray:
@@ -224,6 +227,15 @@ class ClassicalSettings:
         21 -> 15, true markers 1,561 -> 1,563, false 15 -> 16; fresh test-split seeds 10600 + 10700,
         typed wrong 18 -> 17, true 1,157 -> 1,159, false 8 -> 10 (14 of those 18 have an outline
         within 30 % of the true size: their type, not their outline, is wrong).
+    saddle_order: which near X-corners the single-saddle test tries first (at most eight):
+        "strongest" (the contrast order) or "alike" (the contrast most like the candidate's first,
+        :func:`saddle_neighbours`: a shadow across a checkerboard leaves its sunlit corners the
+        strongest, unlike a corner in the shade). "alike" is the default since 2026-11-29, by a rule
+        written before its fresh sets were generated (default if, over test-split seeds 12500 / 12600
+        and 45 MP seeds 12700 / 12800, no true marker lost, no false one added, type and centre no
+        worse, and fewer false markers with the 45 MP set 12400 that showed the case): every figure of
+        the four fresh sets stayed the same, and 12400 went from 4 to 2 false markers (the two
+        corners of a shaded checkerboard).
     """
 
     min_radius_px: float = 8.0
@@ -248,6 +260,7 @@ class ClassicalSettings:
     max_verified: int = 1000
     outline_r0_ratio: float | None = None
     robust_ellipse: bool = False
+    saddle_order: str = "alike"
 
     def __post_init__(self) -> None:
         if not self.min_radius_px > 0:
@@ -282,6 +295,8 @@ class ClassicalSettings:
             raise ValueError("outline_r0_ratio must be over 1 or null (off)")
         if self.robust_ellipse and self.outline_r0_ratio is None:
             raise ValueError("robust_ellipse needs outline_r0_ratio (the refit is kept only where it agrees)")
+        if self.saddle_order not in SADDLE_ORDERS:
+            raise ValueError(f"saddle_order must be one of {', '.join(SADDLE_ORDERS)}, got {self.saddle_order!r}")
         if not 0.0 <= self.outline_window <= 2.0:
             raise ValueError("outline_window must be in [0, 2] (0: off)")
 
@@ -1919,7 +1934,7 @@ class _Scan:
             # of its sector edges with its outline (three regions) its centre shows as a neighbour
             found = [a for a, _ in accepted if 0.4 * v.radius < math.hypot(a.x - v.x, a.y - v.y) < 1.7 * v.radius]
             if any(verifier.is_xcorner(cand_xy[j, 0], cand_xy[j, 1], r_small, v.levels, axes=axes)
-                   for j in near[np.argsort(-cand_c[near])][:8]) \
+                   for j in saddle_neighbours(near, cand_c, c.contrast, s.saddle_order)) \
                     or any(verifier.is_xcorner(a.x, a.y, r_small, v.levels) for a in found):
                 mark(ci, "single saddle", v)
                 rejected += 1
@@ -1961,6 +1976,22 @@ class _Scan:
             mark(ci, "kept", v)
             accepted.append((v, sigma))
         return rejected
+
+
+SADDLE_NEIGHBOURS = 8  # at most this many near X-corners are tested by the single-saddle test
+
+
+def saddle_neighbours(near: np.ndarray, contrast: np.ndarray, own: float, order: str) -> np.ndarray:
+    """The indices ``near`` (into ``contrast``, the candidates' c_hat) that the single-saddle test
+    tries, at most SADDLE_NEIGHBOURS: the strongest first ("strongest"), or those whose contrast is
+    most like ``own`` first ("alike": |log(c / own)|, ties by strength). Corners of one checker
+    under one light have one contrast; a shadow over part of a checkerboard makes its sunlit corners
+    the strongest, and those fail the level comparison with a candidate in the shade."""
+    c = contrast[near]
+    if order == "alike":
+        keys = (-c, np.abs(np.log(np.maximum(c, 1e-6) / max(own, 1e-6))))
+        return near[np.lexsort(keys)][:SADDLE_NEIGHBOURS]
+    return near[np.argsort(-c)][:SADDLE_NEIGHBOURS]
 
 
 def _retry_ring_starts(verifier: "_Verifier", x: float, y: float, r_start: float, v: "_Verified") -> "_Verified":

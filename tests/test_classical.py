@@ -214,6 +214,63 @@ def test_checkerboard_corners_are_not_markers(det):
     assert det.detect(checkerboard()).detections == []
 
 
+def shadowed_checkerboard(cell: int, angle_deg: float, shadow_y: float, shade: float = 0.45, cells: int = 12,
+                          shape=(480, 640), seed: int = 0) -> np.ndarray:
+    """A checkerboard of ``cells`` x ``cells`` squares of ``cell`` px (grey 30 / 225) on a grey wall,
+    turned by ``angle_deg``, with a soft shadow edge (3 px) across the image at row ``shadow_y``:
+    below it every grey is ``shade`` times as bright (half the contrast)."""
+    h, w = shape
+    yy, xx = np.mgrid[0:h * 4, 0:w * 4].astype(np.float32) / 4.0  # 4x supersampled
+    c, s = math.cos(math.radians(angle_deg)), math.sin(math.radians(angle_deg))
+    u = (c * (xx - w / 2) + s * (yy - h / 2)) / cell
+    v = (-s * (xx - w / 2) + c * (yy - h / 2)) / cell
+    inside = (np.abs(u) < cells / 2) & (np.abs(v) < cells / 2)
+    img = np.full(u.shape, 120.0, np.float32)
+    img[inside] = np.where((np.floor(u[inside]) + np.floor(v[inside])) % 2 == 0, 225.0, 30.0)
+    img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+    t = np.clip((np.arange(h, dtype=np.float32)[:, None] - shadow_y) / 3.0, -30, 30)
+    img *= 1.0 - (1.0 - shade) / (1.0 + np.exp(-t))
+    img += np.random.default_rng(seed).normal(0, 1.5, img.shape).astype(np.float32)
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("cell, angle, shadow_y", [(40, 20, 200), (40, 20, 250), (60, 20, 250), (80, 0, 250),
+                                                   (80, 35, 200)])
+def test_a_shadow_across_a_checkerboard_leaves_no_marker_in_the_shade(cell, angle, shadow_y):
+    img = shadowed_checkerboard(cell, angle, shadow_y)
+    assert ClassicalDetector().detect(img).detections == []  # the default order: "alike"
+    assert ClassicalDetector(saddle_order="alike").detect(img).detections == []
+    # the eight strongest neighbours of a corner in the shade lie in the sun, at twice its
+    # contrast, and fail the level comparison: its own checker's corners were never tried
+    assert len(ClassicalDetector(saddle_order="strongest").detect(img).detections) >= 1
+    # without the shadow neither order finds a marker on the board
+    plain = shadowed_checkerboard(cell, angle, shadow_y, shade=1.0)
+    for order in ("alike", "strongest"):
+        assert ClassicalDetector(saddle_order=order).detect(plain).detections == []
+
+
+def test_saddle_neighbours_order_and_cap():
+    from cpdetect.classical import SADDLE_NEIGHBOURS, saddle_neighbours
+
+    contrast = np.array([50.0, 200.0, 95.0, 105.0, 190.0, 100.0, 47.0, 210.0, 180.0, 99.0, 170.0, 160.0])
+    near = np.array([1, 2, 3, 4, 5, 7, 8, 9, 10, 11])
+    strongest = saddle_neighbours(near, contrast, 100.0, "strongest")
+    assert strongest.tolist() == [7, 1, 4, 8, 10, 11, 3, 5][:SADDLE_NEIGHBOURS]
+    alike = saddle_neighbours(near, contrast, 100.0, "alike")
+    # |log(c / 100)|: 100, 99 (0.010), 105 (0.049), 95 (0.051), then 160, 170, 180, 190 (0.47-0.64)
+    assert alike.tolist() == [5, 9, 3, 2, 11, 10, 8, 4]
+    # equally unlike (x2 and /2): the stronger first; indices outside ``near`` are never returned
+    assert saddle_neighbours(np.array([0, 1]), np.array([50.0, 200.0]), 100.0, "alike").tolist() == [1, 0]
+    assert saddle_neighbours(np.array([], int), contrast, 100.0, "alike").size == 0
+
+
+def test_saddle_order_setting_is_checked():
+    from cpdetect.errors import UsageError
+
+    with pytest.raises(UsageError, match="saddle_order must be one of strongest, alike, got 'weakest'"):
+        get_detector("classical", saddle_order="weakest")
+
+
 def test_grout_and_mullion_crosses_are_not_markers(det):
     img = np.full((240, 320), 170.0, np.float32)
     for x in range(20, 320, 60):
