@@ -132,6 +132,7 @@ RETRY_RING_FRACS = (0.12, 0.06, 0.25)
 # count as the same checker's grid in the single-saddle test (see ClassicalSettings.saddle_axes)
 AXES_TOLERANCE_DEG = 12.0
 SADDLE_ORDERS = ("strongest", "alike")
+SADDLE_NEIGHBOURS = 8  # at most this many near X-corners are tested by the single-saddle test
 
 
 def candidate_score(feats: dict) -> np.ndarray:
@@ -1976,9 +1977,6 @@ class _Scan:
             mark(ci, "kept", v)
             accepted.append((v, sigma))
         return rejected
-
-
-SADDLE_NEIGHBOURS = 8  # at most this many near X-corners are tested by the single-saddle test
 
 
 def saddle_neighbours(near: np.ndarray, contrast: np.ndarray, own: float, order: str) -> np.ndarray:
