@@ -103,7 +103,7 @@ def test_probability_map_covers_the_pattern(det):
     assert 0.85 < iou <= 1.0
 
 
-def checkerboard(cells=6, cell=28, shape=(240, 320), angle=0.2):
+def checkerboard(cells=6, cell=28, shape=(240, 320), angle=0.2, blur=0.7):
     img = textured_background(shape, 3)
     yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
     cx, cy = shape[1] / 2, shape[0] / 2
@@ -114,7 +114,7 @@ def checkerboard(cells=6, cell=28, shape=(240, 320), angle=0.2):
     dark = ((np.floor(u / cell) + np.floor(v / cell)) % 2) == 0
     img[inside & dark] = 30.0
     img[inside & ~dark] = 220.0
-    return np.clip(cv2.GaussianBlur(img, (0, 0), 0.7), 0, 255).astype(np.uint8)
+    return np.clip(cv2.GaussianBlur(img, (0, 0), blur), 0, 255).astype(np.uint8)
 
 
 @pytest.mark.parametrize("angle", [0.0, 0.2, 0.5, 0.7, 1.1])
@@ -249,6 +249,17 @@ def test_a_shadow_across_a_checkerboard_leaves_no_marker_in_the_shade(cell, angl
         assert ClassicalDetector(saddle_order=order).detect(plain).detections == []
 
 
+@pytest.mark.parametrize("cell, blur, angle", [(8, 2.0, 0.2), (10, 1.5, 0.2), (10, 1.5, 0.5), (10, 2.0, 0.2),
+                                               (9, 1.2, 0.5), (14, 2.0, 0.2)])
+def test_a_small_blurred_checkerboard_is_no_marker(cell, blur, angle):
+    img = checkerboard(cell=cell, angle=angle, blur=blur)
+    assert ClassicalDetector().detect(img).detections == []  # the default: 3 px
+    assert ClassicalDetector(saddle_ring_min_px=3.0).detect(img).detections == []
+    # rings from 1.5 px lie within the blur: the neighbours' sector means fall short of the levels
+    # the candidate measured farther out, and its own checker's corners do not count
+    assert len(ClassicalDetector(saddle_ring_min_px=1.5).detect(img).detections) >= 1
+
+
 def test_saddle_neighbours_order_and_cap():
     from cpdetect.classical import SADDLE_NEIGHBOURS, saddle_neighbours
 
@@ -269,6 +280,9 @@ def test_saddle_order_setting_is_checked():
 
     with pytest.raises(UsageError, match="saddle_order must be one of strongest, alike, got 'weakest'"):
         get_detector("classical", saddle_order="weakest")
+    for bad in (0.5, 9.0):
+        with pytest.raises(UsageError, match=r"saddle_ring_min_px must be in \[1, 8\]"):
+            get_detector("classical", saddle_ring_min_px=bad)
 
 
 def test_grout_and_mullion_crosses_are_not_markers(det):
