@@ -243,7 +243,8 @@ class ClassicalSettings:
         pixels around each neighbour (and around the centre, for its axes). Under 1-2 px of blur,
         rings from 1.5 px see a small checkerboard's corners with sector means short of the levels its
         candidate measured farther out, and the test let 2-13 corners of a board of 8-14 px cells
-        through as markers (tests). 3.0 is the default since 2026-11-29, by a rule written before its
+        under 1.2-2 px of blur through as markers (0-4 from 3 px; the tests keep six boards that 3 px
+        clears). 3.0 is the default since 2026-11-29, by a rule written before its
         fresh sets were generated (over test-split seeds 12900 / 13000 / 13100: at most 1 true marker
         fewer, no more false ones, type and centre no worse; and, with seed 12500 that showed the case,
         fewer false ones): 1,802 -> 1,801 markers found (a circle of radius 9.9 px on a textured
