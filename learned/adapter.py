@@ -67,11 +67,11 @@ SHIPPED_NETWORKS = {"default": DEFAULT_MODEL_DIR, "lite": DEFAULT_MODEL_DIR.pare
 MODEL_SCORE_FILE = "marker_score_hma.json"
 
 
-def default_model_dir(network: str = "default") -> Path:
+def default_model_dir(network: str = "default", setting: str = "network") -> Path:
     """The folder of a shipped network (config.json, model.pt and/or model.onnx): "default" or
-    "lite" (:data:`SHIPPED_NETWORKS`)."""
+    "lite" (:data:`SHIPPED_NETWORKS`); another name is refused, the error naming ``setting``."""
     if network not in SHIPPED_NETWORKS:
-        raise ValueError(f"network must be one of {', '.join(SHIPPED_NETWORKS)}, got {network!r}")
+        raise ValueError(f"{setting} must be one of {', '.join(SHIPPED_NETWORKS)}, got {network!r}")
     return SHIPPED_NETWORKS[network]
 
 
@@ -329,8 +329,8 @@ class HMASettings:
     def __post_init__(self) -> None:
         object.__setattr__(self, "scales", tuple(float(s) for s in self.scales))
         default_model_dir(self.network)  # refuses a name that is not a shipped network
-        if self.large_network is not None and self.large_network not in SHIPPED_NETWORKS:
-            raise ValueError(f"large_network must be one of {', '.join(SHIPPED_NETWORKS)}, got {self.large_network!r}")
+        if self.large_network is not None:
+            default_model_dir(self.large_network, "large_network")
         # a pass at scale s holds s^2 times a tile's pixels: 50 asked 19 GB of one 1024-px tile
         if 1.0 not in self.scales or min(self.scales) <= 0 or max(self.scales) > MAX_SCALE:
             raise ValueError(f"scales must be in (0, {MAX_SCALE:g}] and include 1.0, got {self.scales}")
