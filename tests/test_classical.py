@@ -986,6 +986,27 @@ def test_a_clean_outline_keeps_its_type_when_the_other_polarity_runs_on(monkeypa
     assert near[0].radius_px == before[0].radius_px and near[0].score == before[0].score
 
 
+def test_verify_marker_at_types_without_the_clean_outline_floor(monkeypatch):
+    # hma types its instances through verify_marker_at; on its fresh sets the floor typed one more
+    # marker wrong (52 -> 53), so there the other polarity may still give the type at any e_rel
+    import cpdetect.classical as C
+
+    seen = []
+    orig = C._Verifier.verify
+
+    def spy(self, *a):
+        seen.append(self.type_fit_min_e_rel)
+        return orig(self, *a)
+
+    monkeypatch.setattr(C._Verifier, "verify", spy)
+    img = cv2.cvtColor(marker_image((80.3, 70.6), 24.0, 0.4, "square", (160, 160), seed=1), cv2.COLOR_BGR2GRAY)
+    assert C.verify_marker_at(img, 80.3, 70.6, 24.0)[0] == "square"
+    assert seen and set(seen) == {0.0}
+    seen.clear()
+    assert [d.type for d in C.ClassicalDetector().detect(img).detections] == ["square"]
+    assert seen and set(seen) == {C.TYPE_FIT_MIN_E_REL}
+
+
 def test_outline_from_the_checker_lines_is_typed_by_the_trees():
     # image 351 of the train-split set of seed 1111: a frontal diagonal marker, radius 16 px, whose
     # outline model fails, so its outline comes from the extents along its checker lines. That
