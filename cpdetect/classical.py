@@ -1712,7 +1712,8 @@ def verify_marker_at(gray: np.ndarray, x: float, y: float, radius_px: float,
     verifier.strict_tests = True
     verifier.type_min_score = 0.0  # the caller decides what the score means
     # hma's types keep the rule without TYPE_FIT_MIN_E_REL: on fresh test-split sets 13200 / 13300 /
-    # 13400 hma typed 52 markers wrong without it and 53 with it (stop 57, by a rule written first)
+    # 13400 hma typed 52 markers wrong without it and 53 with it (stop 57; the rule was written after
+    # 13200's +1 and before 13300 / 13400's figures, which showed no difference)
     verifier.type_fit_min_e_rel = 0.0
     # the detector's own candidates start their rings at various fractions of the radius (their
     # pyramid level); a marker cut by the border or occluded may show its core only from some of them
