@@ -1309,7 +1309,7 @@ class _Verifier:
         # can end that polarity's rays early on a boundary that still fits within 0.04, and then,
         # as the innermost, its outline is kept (see TYPE_FIT_RATIO and TYPE_FIT_MIN_E_REL)
         better = [t for t in good if t is not fit and t["near"] == fit["near"]
-                  and fit["e_rel"] > self.type_fit_min_e_rel and t["e_rel"] < TYPE_FIT_RATIO * fit["e_rel"]]
+                  and t["e_rel"] < TYPE_FIT_RATIO * fit["e_rel"]] if fit["e_rel"] > self.type_fit_min_e_rel else []
         type_fit = min(better, key=lambda t: t["e_rel"]) if better else fit
         hull_fallback = 0.0
         outline, radius = fit["outline"], fit["radius"]
