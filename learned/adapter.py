@@ -261,7 +261,7 @@ class HMASettings:
         down (2026-11-28, stop 47), by +0.0020 / +0.0029 (pixel F1 0.9516 -> 0.9526, 0.9650 ->
         0.9666), the same markers.
     colour_centres: for a colour image (BGR array, or a path, then read in colour), the blobs of the
-        network's map that the network is sure of (mean P at least ``clear_rejected_below``) and that
+        network's map that the network is sure of (mean P at least ``colour_min_mean_p``) and that
         hold no marker of the gray image are looked at again on the paint image (the max of the
         channels, :func:`cpdetect.imageio.paint_image`): centres, instance decision and type as on
         the gray image (:meth:`HMADetector._colour_instances`). The network sees gray, and finds a
@@ -276,6 +276,9 @@ class HMASettings:
         tested; on the textured 45 MP bench JPEG, read from its file, the step found nothing and
         took 10.8 s against 8.5-9.1 s (the colour decode and the texture blobs). "always", "never"
         (or true / false).
+    colour_min_mean_p: the least mean P of a blob that ``colour_centres`` looks at. 0.9, the value
+        of ``clear_rejected_below`` the colour rule was tested with (stop 48); its own setting since
+        stop 58, so that how much of the map is cleared does not change which markers are found.
     One torch thread per detector because cpdetect parallelises over images (``--workers``): torch's
     multi-threaded kernels on an oversubscribed CPU ran 20x slower here (13.7 against 0.71 s per
     megapixel with one other busy process on 2 cores). OpenCV's threads share a busy CPU gracefully
@@ -325,6 +328,7 @@ class HMASettings:
     model_fit: bool = True
     mirror_map: str = "small"
     colour_centres: str | bool = "small"
+    colour_min_mean_p: float = 0.9
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "scales", tuple(float(s) for s in self.scales))
@@ -364,6 +368,8 @@ class HMASettings:
             raise ValueError("max_sigma_px and max_sigma_verified_px must be positive")
         if not 0.0 <= self.clear_rejected_below <= 1.0:
             raise ValueError("clear_rejected_below must be in [0, 1]")
+        if not 0.0 <= self.colour_min_mean_p <= 1.0:
+            raise ValueError("colour_min_mean_p must be in [0, 1]")
         if not 0.0 <= self.classical_min_support < 1.0:
             raise ValueError("classical_min_support must be in [0, 1)")
         if not 0.0 <= self.outline_window <= 2.0:
@@ -687,7 +693,7 @@ class HMADetector:
         """``dets`` (from the gray image) plus the markers found on the paint image (``paint_of()``, the
         max of the channels, :func:`_paint_of`; None for a gray image) on the blobs of the network's map
         ``network`` that hold none of them and that the network is sure of (mean P at least
-        ``clear_rejected_below``): centres, instance decision and type as on the gray image, but on
+        ``colour_min_mean_p``): centres, instance decision and type as on the gray image, but on
         paint, where a marker painted in colours of one luminance shows its checker. ``prob`` (the
         returned map) gets the network's blobs of the added markers back."""
         s = self.settings
@@ -701,7 +707,7 @@ class HMADetector:
             held[labels[r, c]] = True
         mean_p = np.bincount(labels.ravel(), weights=network.ravel(), minlength=n) \
             / np.maximum(stats[:, cv2.CC_STAT_AREA], 1)
-        look = ~held & (mean_p >= s.clear_rejected_below)
+        look = ~held & (mean_p >= s.colour_min_mean_p)
         look[0] = False
         if not look.any():
             return dets, prob

@@ -66,9 +66,23 @@ def test_markers_found_in_gray_are_not_looked_at_again():
 
 def test_only_blobs_the_network_is_sure_of_are_looked_at():
     bgr, mask = _painted("circle")
-    unsure = mask.astype(np.float32) * 0.8  # mean P 0.8, under clear_rejected_below (0.9)
+    unsure = mask.astype(np.float32) * 0.8  # mean P 0.8, under colour_min_mean_p (0.9)
     res = HMADetector.with_backend(SoftBackend(unsure), mirror_map="never", colour_centres=True).detect(bgr)
     assert res.detections == [] and res.extras["colour_found"] == 0
     res = HMADetector.with_backend(SoftBackend(unsure), mirror_map="never", colour_centres=True,
-                                   clear_rejected_below=0.75).detect(bgr)
+                                   colour_min_mean_p=0.75).detect(bgr)
     assert res.extras["colour_found"] == 1
+
+
+def test_the_colour_look_does_not_follow_the_map_clearing_cut():
+    # which blobs are cleared from the returned map is a choice about the map alone: it must not
+    # change which blobs get the colour look, and so not the markers
+    bgr, mask = _painted("circle")
+    sure = mask.astype(np.float32) * 0.95  # mean P 0.95
+    for clear in (0.9, 0.97, 1.0):
+        res = HMADetector.with_backend(SoftBackend(sure), mirror_map="never", colour_centres=True,
+                                       clear_rejected_below=clear).detect(bgr)
+        assert res.extras["colour_found"] == 1 and len(res.detections) == 1
+    res = HMADetector.with_backend(SoftBackend(sure), mirror_map="never", colour_centres=True,
+                                   colour_min_mean_p=0.97).detect(bgr)
+    assert res.extras["colour_found"] == 0 and res.detections == []

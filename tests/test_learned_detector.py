@@ -213,6 +213,8 @@ def test_settings_are_checked():
     assert get_detector("hma", scales=[0.25, 1.0, 4.0]).settings.scales == (0.25, 1.0, 4.0)
     with pytest.raises(ValueError, match="clear_rejected_below"):
         HMADetector.with_backend(OracleBackend(np.zeros((4, 4))), clear_rejected_below=1.5)
+    with pytest.raises(ValueError, match="colour_min_mean_p"):
+        HMADetector.with_backend(OracleBackend(np.zeros((4, 4))), colour_min_mean_p=-0.1)
     with pytest.raises(ValueError, match="max_sigma_verified_px"):
         HMADetector.with_backend(OracleBackend(np.zeros((4, 4))), max_sigma_verified_px=0.0)
     with pytest.raises(UsageError, match="outline_window"):
