@@ -132,7 +132,10 @@ class HMASettings:
     of 123 validation markers, no false one. clear_rejected_below: a blob that yields no marker is
     cleared from the probability map unless its mean P is at least this (0 keeps the network's map
     as it is); 0.9 raised pixel IoU from 0.890 to 0.893 on validation and from 0.859 to 0.872 on a
-    fresh test-split set (seed 777), with no blob of a found marker touched. max_seeds: X-corner
+    fresh test-split set (seed 777), with no blob of a found marker touched.
+    large_clear_rejected_below: the same cut for the images the network sees downscaled (longest side
+    over ``max_side``; None: ``clear_rejected_below``). On 45 MP images most of the blobs the network is
+    sure of that yield no marker hold none (tag bits, a dark splotch, an occluder's edge). max_seeds: X-corner
     seeds tried per instance besides the centroid (0 = centroid only). type_by: "model" (the
     classical outline fit at the centre, falling back to shape) or "shape". threads: CPU
     threads of the network (None, the default: 1 for torch, OpenCV's own setting, all cores, for
@@ -303,6 +306,7 @@ class HMASettings:
     max_sigma_px: float = 0.3
     max_sigma_verified_px: float = 0.6
     clear_rejected_below: float = 0.9
+    large_clear_rejected_below: float | None = None
     max_seeds: int = 3
     type_by: str = "model"
     threads: int | None = None
@@ -368,6 +372,8 @@ class HMASettings:
             raise ValueError("max_sigma_px and max_sigma_verified_px must be positive")
         if not 0.0 <= self.clear_rejected_below <= 1.0:
             raise ValueError("clear_rejected_below must be in [0, 1]")
+        if self.large_clear_rejected_below is not None and not 0.0 <= self.large_clear_rejected_below <= 1.0:
+            raise ValueError("large_clear_rejected_below must be in [0, 1] (or null)")
         if not 0.0 <= self.colour_min_mean_p <= 1.0:
             raise ValueError("colour_min_mean_p must be in [0, 1]")
         if not 0.0 <= self.classical_min_support < 1.0:
@@ -610,6 +616,15 @@ class HMADetector:
         (``mirror_map``)."""
         return self._applies(self.settings.mirror_map, width, height)
 
+    def clear_rejected_below_for(self, width: int, height: int) -> float:
+        """The least mean P of a blob that yields no marker and stays in the returned map, for an image
+        of this size: ``large_clear_rejected_below`` where the network sees it downscaled (longest
+        side over ``max_side``) and that is set, else ``clear_rejected_below``."""
+        s = self.settings
+        if s.large_clear_rejected_below is not None and s.max_side is not None and max(width, height) > s.max_side:
+            return s.large_clear_rejected_below
+        return s.clear_rejected_below
+
     def colour_centres_for(self, width: int, height: int) -> bool:
         """Whether blobs without a marker are looked at again on the paint image for an image of this
         size (``colour_centres``: "small", the images seen at ``small_scales``)."""
@@ -793,6 +808,7 @@ class HMADetector:
         model = self.instance_model
         cut = (s.instance_threshold if s.instance_threshold is not None else model.threshold) if model else None
         blobs, labels = self.candidates(gray, prob, f, seeds=seeds)
+        clear_below = self.clear_rejected_below_for(w, h)
         witnessed = None if witnesses is None else {
             int(labels[r, c]) for c, r in (_map_pixel(d.x, d.y, f, labels.shape) for d in witnesses)}
         out: list[MarkerDetection] = []
@@ -800,7 +816,7 @@ class HMADetector:
         for b in blobs:
             # a blob that yields no marker is cleared from the map unless the network is sure of it
             # (and a witness, when there are any to ask, saw a marker on it too)
-            unsure = b.mean_p < s.clear_rejected_below or (witnessed is not None and b.label not in witnessed)
+            unsure = b.mean_p < clear_below or (witnessed is not None and b.label not in witnessed)
             cx, cy = b.centroid
             score = float(np.clip(b.mean_p, 0.0, 1.0))
             sigma = max(0.5, 0.25 * b.radius)

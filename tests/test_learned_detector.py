@@ -157,6 +157,30 @@ def test_blobs_without_a_marker_are_cleared_unless_the_network_is_sure():
     assert np.allclose(raw[110:140, 180:210], 0.7, atol=1e-3)
 
 
+def test_images_seen_downscaled_clear_blobs_up_to_their_own_cut():
+    img, mask, _ = rendered("square", center=(80.0, 128.0), radius=22.0, angle=0.4)
+    soft = mask.astype(np.float32)
+    soft[30:60, 180:210] = 0.93  # no marker, the network fairly sure of it
+
+    def sure_blob(max_side, **cuts):
+        det = HMADetector.with_backend(SoftBackend(soft), scales=(1.0,), small_scales=None, mirror_map="never",
+                                       max_side=max_side, **cuts)
+        res = det.detect(img)
+        assert len(res.detections) == 1 and res.detections[0].type == "square"
+        f = res.extras["probability_factor"]
+        return float(res.probability[int(45 * f), int(195 * f)])
+
+    # by default the one cut holds everywhere; the large-image cut changes the images seen
+    # downscaled (longest side over max_side) only
+    assert abs(sure_blob(512) - 0.93) < 2e-3 and abs(sure_blob(128) - 0.93) < 2e-3
+    assert abs(sure_blob(512, large_clear_rejected_below=0.97) - 0.93) < 2e-3
+    assert sure_blob(128, large_clear_rejected_below=0.97) == 0.0
+    assert abs(sure_blob(128, large_clear_rejected_below=0.9) - 0.93) < 2e-3
+    assert sure_blob(512, clear_rejected_below=0.97, large_clear_rejected_below=0.9) == 0.0
+    with pytest.raises(ValueError, match="large_clear_rejected_below"):
+        HMADetector.with_backend(SoftBackend(soft), large_clear_rejected_below=1.2)
+
+
 def test_blobs_the_network_is_far_from_sure_of_are_dropped_unrefined_with_an_instance_model(monkeypatch):
     import learned.adapter as adapter
     from learned.instances import INSTANCE_FEATURES, InstanceModel
