@@ -1160,3 +1160,20 @@ def test_outline_that_disagrees_with_its_boundary_points_gives_way(index, seed, 
     (new,) = near(outline_r0_ratio=1.5, robust_ellipse=True)
     assert new.type == t.type and abs(new.radius_px / t.radius_px - 1) < 0.25
     assert math.hypot(new.x - t.x, new.y - t.y) < 0.2
+
+
+def test_the_colour_pass_takes_the_paint_fit_where_the_two_fits_lie_far_apart():
+    # test-split seed 12500, image 26: an orange-on-grey marker (gray contrast -13) found by the colour
+    # pass; its gray fit settles 3.3 px off with the smaller sigma, its paint fit 0.8 px off
+    img, markers = generated_photo(26, 12500, split="test")
+    painted = min(markers, key=lambda m: m.extra["contrast"])
+    assert painted.extra["contrast"] < 0
+
+    def error(**settings) -> float:
+        dets = ClassicalDetector(**settings).detect(img).detections
+        return min(math.hypot(d.x - painted.x, d.y - painted.y) for d in dets)
+
+    assert error(colour_fit_max_apart_px=None) > 3.0
+    assert error(colour_fit_max_apart_px=2.0) < 1.0
+    with pytest.raises(ValueError, match="colour_fit_max_apart_px"):
+        ClassicalDetector(colour_fit_max_apart_px=0.0)
