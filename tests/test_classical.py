@@ -1175,5 +1175,6 @@ def test_the_colour_pass_takes_the_paint_fit_where_the_two_fits_lie_far_apart():
 
     assert error(colour_fit_max_apart_px=None) > 3.0
     assert error(colour_fit_max_apart_px=2.0) < 1.0
+    assert error() < 1.0  # the default since stop 58
     with pytest.raises(ValueError, match="colour_fit_max_apart_px"):
         ClassicalDetector(colour_fit_max_apart_px=0.0)
