@@ -1987,7 +1987,9 @@ class _Scan:
             ref = refine_center_coarse_to_fine(gray, v.x, v.y, v.radius, s.refine_method, max_shift_px=shift)
             if paint_search is not None:
                 # painted markers: the gray edges may be faint, the paint ones soft (JPEG stores colour
-                # at half resolution); the fit with the smaller sigma wins
+                # at half resolution); the fit with the smaller sigma wins, unless the two lie further
+                # apart than two fits of one centre do: then the gray fit found something else (a
+                # single checker line on next to no gray contrast) and the paint fit stays
                 alt = _refine_reduced(paint_search, k, v.x, v.y, v.radius, s.refine_method, shift)
                 if alt.ok and (not ref.ok or alt.sigma_px < ref.sigma_px
                                or _fits_apart(ref, alt, s.colour_fit_max_apart_px)):
