@@ -138,7 +138,11 @@ class HMASettings:
     sure of that yield no marker hold none (tag bits, a dark splotch, an occluder's edge), but 0.97 did not
     become the default by two rules written first (stop 58): on four fresh 45 MP sets pixel IoU stayed the
     same on two, rose on one (0.927 -> 0.967) and fell on one (0.867 -> 0.865, a covered marker's blob
-    cleared), the markers the same; learned/weights/default/TRAINING.md. max_seeds: X-corner
+    cleared), the markers the same; learned/weights/default/TRAINING.md.
+    large_drop_unverified_seeds: on the images the network sees downscaled, drop an instance whose
+    centre is a refined X-corner seed that neither the marker model nor a classical marker confirms
+    (kind "seed"); on nine seen 45 MP sets such centres were 9 false markers (checkerboard and shadow
+    corners) and 2 true ones. max_seeds: X-corner
     seeds tried per instance besides the centroid (0 = centroid only). type_by: "model" (the
     classical outline fit at the centre, falling back to shape) or "shape". threads: CPU
     threads of the network (None, the default: 1 for torch, OpenCV's own setting, all cores, for
@@ -310,6 +314,7 @@ class HMASettings:
     max_sigma_verified_px: float = 0.6
     clear_rejected_below: float = 0.9
     large_clear_rejected_below: float | None = None
+    large_drop_unverified_seeds: bool = False
     max_seeds: int = 3
     type_by: str = "model"
     threads: int | None = None
@@ -619,12 +624,17 @@ class HMADetector:
         (``mirror_map``)."""
         return self._applies(self.settings.mirror_map, width, height)
 
+    def seen_downscaled(self, width: int, height: int) -> bool:
+        """Whether the network sees an image of this size downscaled (longest side over ``max_side``)."""
+        m = self.settings.max_side
+        return m is not None and max(width, height) > m
+
     def clear_rejected_below_for(self, width: int, height: int) -> float:
         """The least mean P of a blob that yields no marker and stays in the returned map, for an image
-        of this size: ``large_clear_rejected_below`` where the network sees it downscaled (longest
-        side over ``max_side``) and that is set, else ``clear_rejected_below``."""
+        of this size: ``large_clear_rejected_below`` where the network sees it downscaled and that is
+        set, else ``clear_rejected_below``."""
         s = self.settings
-        if s.large_clear_rejected_below is not None and s.max_side is not None and max(width, height) > s.max_side:
+        if s.large_clear_rejected_below is not None and self.seen_downscaled(width, height):
             return s.large_clear_rejected_below
         return s.clear_rejected_below
 
@@ -644,8 +654,7 @@ class HMADetector:
     def backend_for(self, width: int, height: int):
         """The network for an image of this size: ``large_network``'s where the image is seen
         downscaled (longest side over ``max_side``) and one is set, else the detector's own."""
-        m = self.settings.max_side
-        if self.large_backend is not None and m is not None and max(width, height) > m:
+        if self.large_backend is not None and self.seen_downscaled(width, height):
             return self.large_backend
         return self.backend
 
@@ -812,6 +821,7 @@ class HMADetector:
         cut = (s.instance_threshold if s.instance_threshold is not None else model.threshold) if model else None
         blobs, labels = self.candidates(gray, prob, f, seeds=seeds)
         clear_below = self.clear_rejected_below_for(w, h)
+        drop_seeds = s.large_drop_unverified_seeds and self.seen_downscaled(w, h)
         witnessed = None if witnesses is None else {
             int(labels[r, c]) for c, r in (_map_pixel(d.x, d.y, f, labels.shape) for d in witnesses)}
         out: list[MarkerDetection] = []
@@ -834,6 +844,8 @@ class HMADetector:
                         # the classical detector's own verification stands beside the model's
                         keep = score >= cut or b.centre.classical
                     cx, cy, sigma, mtype = b.centre.x, b.centre.y, b.centre.sigma, b.centre.type
+                    if keep and drop_seeds and b.centre.kind == "seed" and not b.centre.classical:
+                        keep = False
                     # sym180 is measured only for the ranker's candidates (the rules leave it 0)
                     if keep and self.centre_ranker is not None and b.centre.kind != "verified" \
                             and not b.centre.classical and b.centre.sym180 < s.min_sym180_unverified:

@@ -497,3 +497,28 @@ def test_opencv_trunk_on_a_side_under_64_pixels():
     if torch_available() and (DEFAULT_MODEL_DIR / "model.pt").exists():
         ref, ref_att = open_backend(DEFAULT_MODEL_DIR, "torch").trunk(x)
         assert np.abs(logits - ref).max() < 1e-3 and np.abs(attention - ref_att).max() < 1e-3
+
+
+@pytest.mark.parametrize("kind", ["seed", "verified", "centroid"])
+def test_images_seen_downscaled_can_drop_centres_only_an_x_corner_seed_gave(monkeypatch, kind):
+    # on 45 MP sets most refined X-corner seeds that the marker model does not verify were checkerboard
+    # and shadow corners (stop 58); the setting drops those on the images the network sees downscaled
+    import learned.adapter as adapter
+
+    img, mask, _ = rendered("square", center=(128.0, 128.0), radius=26.0, angle=0.3)
+    centre = adapter._Centre(128.0, 128.0, 0.05, kind, type="square", sym180=0.9, reach=1.0)
+
+    def one_blob(self, gray, prob, f, seeds=None, loose=False):
+        labels = (prob >= 0.5).astype(np.int32)
+        blob = adapter.BlobCandidate(1, (0, 0, prob.shape[1], prob.shape[0]), 26.0, 0.95, (128.0, 128.0), centre)
+        return [blob], labels
+
+    monkeypatch.setattr(adapter.HMADetector, "candidates", one_blob)
+
+    def found(max_side, drop):
+        det = HMADetector.with_backend(OracleBackend(mask), None, scales=(1.0,), small_scales=None, mirror_map="never",
+                                       max_side=max_side, large_drop_unverified_seeds=drop)
+        return len(det.detect(img).detections)
+
+    assert found(512, False) == found(512, True) == found(128, False) == 1  # not downscaled, or off
+    assert found(128, True) == (0 if kind == "seed" else 1)
