@@ -522,3 +522,4 @@ def test_images_seen_downscaled_can_drop_centres_only_an_x_corner_seed_gave(monk
 
     assert found(512, False) == found(512, True) == found(128, False) == 1  # not downscaled, or off
     assert found(128, True) == (0 if kind == "seed" else 1)
+    assert HMADetector.with_backend(OracleBackend(mask)).settings.large_drop_unverified_seeds  # since stop 58
