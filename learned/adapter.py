@@ -846,6 +846,8 @@ class HMADetector:
                         # the classical detector's own verification stands beside the model's
                         keep = score >= cut or b.centre.classical
                     cx, cy, sigma, mtype = b.centre.x, b.centre.y, b.centre.sigma, b.centre.type
+                    # on images seen downscaled such centres were mostly checkerboard and shadow
+                    # corners, whatever the network's confidence (large_drop_unverified_seeds)
                     if keep and drop_seeds and b.centre.kind == "seed" and not b.centre.classical:
                         keep = False
                     # sym180 is measured only for the ranker's candidates (the rules leave it 0)
