@@ -499,14 +499,10 @@ def test_opencv_trunk_on_a_side_under_64_pixels():
         assert np.abs(logits - ref).max() < 1e-3 and np.abs(attention - ref_att).max() < 1e-3
 
 
-@pytest.mark.parametrize("kind", ["seed", "verified", "centroid"])
-def test_images_seen_downscaled_can_drop_centres_only_an_x_corner_seed_gave(monkeypatch, kind):
-    # on 45 MP sets most refined X-corner seeds that the marker model does not verify were checkerboard
-    # and shadow corners (stop 58); the setting drops those on the images the network sees downscaled
+def _one_sure_blob(monkeypatch, centre) -> None:
+    """The detector's candidates become one blob over the whole map (mean P 0.95, radius 26 px) with
+    this centre."""
     import learned.adapter as adapter
-
-    img, mask, _ = rendered("square", center=(128.0, 128.0), radius=26.0, angle=0.3)
-    centre = adapter._Centre(128.0, 128.0, 0.05, kind, type="square", sym180=0.9, reach=1.0)
 
     def one_blob(self, gray, prob, f, seeds=None, loose=False):
         labels = (prob >= 0.5).astype(np.int32)
@@ -514,6 +510,16 @@ def test_images_seen_downscaled_can_drop_centres_only_an_x_corner_seed_gave(monk
         return [blob], labels
 
     monkeypatch.setattr(adapter.HMADetector, "candidates", one_blob)
+
+
+@pytest.mark.parametrize("kind", ["seed", "verified", "centroid"])
+def test_images_seen_downscaled_can_drop_centres_only_an_x_corner_seed_gave(monkeypatch, kind):
+    # on 45 MP sets most refined X-corner seeds that the marker model does not verify were checkerboard
+    # and shadow corners (stop 58); the setting drops those on the images the network sees downscaled
+    import learned.adapter as adapter
+
+    img, mask, _ = rendered("square", center=(128.0, 128.0), radius=26.0, angle=0.3)
+    _one_sure_blob(monkeypatch, adapter._Centre(128.0, 128.0, 0.05, kind, type="square", sym180=0.9, reach=1.0))
 
     def found(max_side, drop):
         det = HMADetector.with_backend(OracleBackend(mask), None, scales=(1.0,), small_scales=None, mirror_map="never",
@@ -523,3 +529,25 @@ def test_images_seen_downscaled_can_drop_centres_only_an_x_corner_seed_gave(monk
     assert found(512, False) == found(512, True) == found(128, False) == 1  # not downscaled, or off
     assert found(128, True) == (0 if kind == "seed" else 1)
     assert HMADetector.with_backend(OracleBackend(mask)).settings.large_drop_unverified_seeds  # since stop 58
+
+
+@pytest.mark.parametrize("kind,classical", [("seed", False), ("seed", True), ("verified", False), ("centroid", False)])
+def test_images_seen_downscaled_can_clear_sure_blobs_around_unconfirmed_seeds(monkeypatch, kind, classical):
+    # a blob the network is sure of stays in the map when it yields no marker, unless, on an image the
+    # network sees downscaled and with the setting on, its centre is a seed nothing confirmed
+    import learned.adapter as adapter
+
+    img, mask, _ = rendered("square", center=(128.0, 128.0), radius=26.0, angle=0.3)
+    _one_sure_blob(monkeypatch, adapter._Centre(128.0, 128.0, 0.05, kind, type="square", sym180=0.9, reach=1.0,
+                                                classical=classical))
+
+    def kept_in_map(max_side, clear):
+        # min_radius_px over the blob's radius: the blob yields no marker whatever its centre
+        det = HMADetector.with_backend(OracleBackend(mask), None, scales=(1.0,), small_scales=None, mirror_map="never",
+                                       max_side=max_side, min_radius_px=40.0, large_clear_unverified_seeds=clear)
+        res = det.detect(img)
+        assert res.detections == []
+        return float(res.probability.max()) >= 0.5
+
+    assert kept_in_map(512, False) and kept_in_map(512, True) and kept_in_map(128, False)  # not downscaled, or off
+    assert kept_in_map(128, True) == (kind != "seed" or classical)
