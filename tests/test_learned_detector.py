@@ -551,3 +551,4 @@ def test_images_seen_downscaled_can_clear_sure_blobs_around_unconfirmed_seeds(mo
 
     assert kept_in_map(512, False) and kept_in_map(512, True) and kept_in_map(128, False)  # not downscaled, or off
     assert kept_in_map(128, True) == (kind != "seed" or classical)
+    assert HMADetector.with_backend(OracleBackend(mask)).settings.large_clear_unverified_seeds  # since stop 59
