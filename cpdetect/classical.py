@@ -136,6 +136,7 @@ RETRY_RING_FRACS = (0.12, 0.06, 0.25)
 AXES_TOLERANCE_DEG = 12.0
 SADDLE_ORDERS = ("strongest", "alike")
 SADDLE_NEIGHBOURS = 8  # at most this many near X-corners are tested by the single-saddle test
+TAG_FIELD = "dark field all around (a tag's bit cells)"  # the outer-ring test's reason for a tag's bit corner
 
 
 def candidate_score(feats: dict) -> np.ndarray:
@@ -1685,7 +1686,7 @@ class _Verifier:
         # next bright bits or the quiet zone are 2.5-4 cells away)
         if dark_surround > 0.85 and mtype == "square" \
                 and self._far_bright(x, y, dist, V[4:], B, C) > self.TAG_FAR_BRIGHT:
-            return "dark field all around (a tag's bit cells)"
+            return TAG_FIELD
         return dict(inverted=inverted, alternations=alt_max, outer_mixed=mixed, fill=fill, alt_far=alt_far,
                     dark_surround=dark_surround)
 

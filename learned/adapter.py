@@ -54,6 +54,8 @@ from cpdetect.detector import as_gray_uint8, settings_from_dataclass
 from cpdetect.refine import METHODS, refine_in_outline
 from cpdetect.types import DetectionResult, MarkerDetection
 
+from cpdetect.classical import TAG_FIELD
+
 from .centre_choice import CentreRanker, load_centre_ranker
 from .instances import InstanceModel, blob_features, load_instance_model
 from .mirror_map import keep_blobs_of, mirrored_mean
@@ -65,6 +67,10 @@ SHIPPED_NETWORKS = {"default": DEFAULT_MODEL_DIR, "lite": DEFAULT_MODEL_DIR.pare
 # instance model were fitted on (those trees of 2026-11-25); the classical detector's own were
 # refitted since on more images, and a model keeps the inputs it was fitted with
 MODEL_SCORE_FILE = "marker_score_hma.json"
+# where the classical scan leaves a candidate it has judged not to be a marker (its trace's stages):
+# a tag's bit cells around it, a centre grey unlike an X-corner's, a low marker score, another corner
+# of the same checker beside it (``large_classical_veto``)
+CLASSICAL_VETO_STAGES = ("verify: " + TAG_FIELD, "centre grey", "score", "single saddle")
 
 
 def default_model_dir(network: str = "default", setting: str = "network") -> Path:
@@ -151,7 +157,14 @@ class HMASettings:
     checkerboard corners of radius 680-890 px among them, against 55,000 true ones). Markers found do
     not change. The default since stop 59, by a rule written before its test sets existed: on six
     fresh 45 MP sets (15200-15700) pixel IoU 0.808 / 0.848 / 0.882 / 0.815 / 0.829 / 0.771 -> 0.948 /
-    0.857 / 0.960 / 0.822 / 0.845 / 0.763 (mean 0.825 -> 0.866), the same markers. max_seeds: X-corner
+    0.857 / 0.960 / 0.822 / 0.845 / 0.763 (mean 0.825 -> 0.866), the same markers.
+    large_classical_veto: on the images the network sees downscaled, also run the classical
+    detector (with its trace) and drop a marker, clearing its blob from the map, where the classical
+    detector kept none within half its radius and one of its candidates within max(8 px, 0.1 radius)
+    of the centre stopped at a test that says "not a marker" (:data:`CLASSICAL_VETO_STAGES`: a tag's
+    dark field, the centre's grey, the score, the single saddle); on twelve seen 45 MP sets that would
+    have dropped 10 of hma's 14 false markers (tag bit-cell and checkerboard corners) and none of its
+    526 true ones. max_seeds: X-corner
     seeds tried per instance besides the centroid (0 = centroid only). type_by: "model" (the
     classical outline fit at the centre, falling back to shape) or "shape". threads: CPU
     threads of the network (None, the default: 1 for torch, OpenCV's own setting, all cores, for
@@ -325,6 +338,7 @@ class HMASettings:
     large_clear_rejected_below: float | None = None
     large_drop_unverified_seeds: bool = True
     large_clear_unverified_seeds: bool = True
+    large_classical_veto: bool = False
     max_seeds: int = 3
     type_by: str = "model"
     threads: int | None = None
@@ -573,6 +587,29 @@ def _paint_of(image: Any) -> np.ndarray | None:
     return paint_image(np.ascontiguousarray(a[:, :, :3]))
 
 
+@dataclass(frozen=True)
+class ClassicalVeto:
+    """Where the classical detector said "not a marker" on one image: ``rejected`` (n, 2), image
+    pixels, its candidates that stopped at one of :data:`CLASSICAL_VETO_STAGES`, and ``found`` (m, 2),
+    the centres of the markers it kept."""
+
+    rejected: np.ndarray
+    found: np.ndarray
+
+    @classmethod
+    def from_trace(cls, trace: list[dict], found: list[MarkerDetection]) -> "ClassicalVeto":
+        """From a trace of :meth:`cpdetect.classical.ClassicalDetector.detect` and its markers."""
+        rej = [(t["x"], t["y"]) for t in trace if t["stage"] in CLASSICAL_VETO_STAGES]
+        return cls(np.array(rej, float).reshape(-1, 2), np.array([(d.x, d.y) for d in found], float).reshape(-1, 2))
+
+    def says_no(self, x: float, y: float, radius: float) -> bool:
+        """Whether a marker of ``radius`` at (x, y) is vetoed: no classical marker within half the
+        radius, and a rejected candidate within max(8 px, 0.1 radius)."""
+        if len(self.found) and np.hypot(*(self.found - (x, y)).T).min() < 0.5 * radius:
+            return False
+        return bool(len(self.rejected)) and np.hypot(*(self.rejected - (x, y)).T).min() < max(8.0, 0.1 * radius)
+
+
 def _map_pixel(x: float, y: float, f: float, shape: tuple[int, int]) -> tuple[int, int]:
     """(column, row) of the map pixel (``f`` per image pixel, map of ``shape`` (rows, columns))
     nearest to the image point (x, y), clipped into the map."""
@@ -678,8 +715,6 @@ class HMADetector:
     def detect(self, image: Any) -> DetectionResult:
         t0 = time.perf_counter()
         s = self.settings
-        classical = self._classical(image, s.classical_markers) if s.classical_seeds or s.classical_markers else None
-        seeds = classical.detections if s.classical_seeds else None
         source = image
         if isinstance(image, (str, os.PathLike)):
             from cpdetect.imageio import read_image
@@ -693,9 +728,15 @@ class HMADetector:
                                    seconds=time.perf_counter() - t0,
                                    extras={"backend": self.backend.name, "scales": [], "probability_factor": 1.0,
                                            "network": self._network_for(w, h)})
+        veto_on = s.large_classical_veto and self.seen_downscaled(w, h)
+        trace: list | None = [] if veto_on else None
+        classical = self._classical(source, s.classical_markers, trace) \
+            if s.classical_seeds or s.classical_markers or veto_on else None
+        seeds = classical.detections if s.classical_seeds else None
+        veto = ClassicalVeto.from_trace(trace, classical.detections) if veto_on else None
         pm = self.probability(gray)
         witnesses = classical.detections if s.classical_markers else None
-        dets, prob = self._instances(gray, pm.prob, pm.factor, seeds, witnesses)
+        dets, prob = self._instances(gray, pm.prob, pm.factor, seeds, witnesses, veto)
         colour_found = 0
         if self.colour_centres_for(w, h):
             n0 = len(dets)
@@ -821,10 +862,12 @@ class HMADetector:
 
     def _instances(self, gray: np.ndarray, prob: np.ndarray, f: float,
                    seeds: list[MarkerDetection] | None = None,
-                   witnesses: list[MarkerDetection] | None = None) -> tuple[list[MarkerDetection], np.ndarray]:
+                   witnesses: list[MarkerDetection] | None = None,
+                   veto: "ClassicalVeto | None" = None) -> tuple[list[MarkerDetection], np.ndarray]:
         """The marker instances, and the probability map with the rejected blobs cleared (unless the
         network is sure of them, ``clear_rejected_below``, and, when ``witnesses`` is given, one of
-        those markers lies on the blob)."""
+        those markers lies on the blob); ``veto``: the classical detector's say (``large_classical_veto``),
+        whose vetoed blobs are cleared too."""
         s = self.settings
         h, w = gray.shape
         model = self.instance_model
@@ -866,11 +909,13 @@ class HMADetector:
                     if keep and s.min_centre_reach > 0:
                         reach = b.centre.reach
                         keep = (centre_reach(gray, cx, cy, b.radius) if reach is None else reach) >= s.min_centre_reach
+            vetoed = keep and veto is not None and veto.says_no(cx, cy, b.radius)
+            keep = keep and not vetoed
             if not keep:
                 # on images seen downscaled a sure blob around an unconfirmed X-corner seed was mostly a
                 # checkerboard's or a shadow's corner (large_clear_unverified_seeds)
                 seed_only = b.centre is not None and b.centre.kind == "seed" and not b.centre.classical
-                if unsure or (clear_seeds and seed_only):
+                if unsure or (clear_seeds and seed_only) or vetoed:
                     rejected.append(b.label)
                 continue
             if mtype is None:
@@ -910,12 +955,13 @@ class HMADetector:
             quad_img = (qp + 0.5) / f - 0.5
         return checker_phase_type(gray, cx, cy, radius, quad_img)
 
-    def _classical(self, image: Any, with_map: bool) -> DetectionResult:
-        """The classical detector's result on ``image`` (array or path): seeds for the blobs, or
-        markers to add (``with_map``: with its probability map)."""
+    def _classical(self, image: Any, with_map: bool, trace: list | None = None) -> DetectionResult:
+        """The classical detector's result on ``image`` (array or path): seeds for the blobs, markers
+        to add (``with_map``: with its probability map) or vetoes (``trace``: a list that receives
+        where its scan left each candidate)."""
         from cpdetect.classical import ClassicalDetector
 
-        return ClassicalDetector(probability_map=with_map).detect(image)
+        return ClassicalDetector(probability_map=with_map).detect(image, trace=trace)
 
     def _refined_centre(self, gray, labels, f, k, bbox, radius, centroid, loose: bool = False,
                         extra: list[tuple[float, float]] = ()) -> "_Centre | None":

@@ -552,3 +552,43 @@ def test_images_seen_downscaled_can_clear_sure_blobs_around_unconfirmed_seeds(mo
     assert kept_in_map(512, False) and kept_in_map(512, True) and kept_in_map(128, False)  # not downscaled, or off
     assert kept_in_map(128, True) == (kind != "seed" or classical)
     assert HMADetector.with_backend(OracleBackend(mask)).settings.large_clear_unverified_seeds  # since stop 59
+
+
+def test_classical_veto_needs_a_rejection_at_the_centre_and_no_classical_marker():
+    from cpdetect.classical import TAG_FIELD
+    from cpdetect.types import MarkerDetection
+    from learned.adapter import ClassicalVeto
+
+    trace = [{"x": 100.0, "y": 100.0, "stage": "score"}, {"x": 300.0, "y": 300.0, "stage": "prefilter"},
+             {"x": 500.0, "y": 500.0, "stage": "single saddle"}, {"x": 700.0, "y": 700.0, "stage": "verify: " + TAG_FIELD},
+             {"x": 900.0, "y": 900.0, "stage": "verify: outline degenerate"}]
+    veto = ClassicalVeto.from_trace(trace, [MarkerDetection(505.0, 500.0, 0.9, "square", 30.0, 0.1)])
+    assert veto.says_no(102.0, 100.0, 30.0) and veto.says_no(700.0, 707.0, 30.0)
+    assert not veto.says_no(100.0, 109.0, 30.0) and veto.says_no(100.0, 109.0, 100.0)  # max(8 px, 0.1 radius)
+    assert not veto.says_no(300.0, 300.0, 30.0) and not veto.says_no(900.0, 900.0, 30.0)  # no judgement there
+    assert not veto.says_no(500.0, 500.0, 30.0)  # the classical detector kept a marker within half the radius
+    assert not ClassicalVeto.from_trace([], []).says_no(100.0, 100.0, 30.0)
+
+
+def test_images_seen_downscaled_take_the_classical_detectors_veto(monkeypatch):
+    # the real classical scan, told to reject every centre's grey, leaves a "centre grey" row at the marker
+    import learned.adapter as adapter
+    from cpdetect.classical import ClassicalDetector
+
+    img, mask, _ = rendered("square", center=(128.0, 128.0), radius=26.0, angle=0.3)
+
+    def detect(max_side, veto, reject):
+        if reject:
+            monkeypatch.setattr(adapter.HMADetector, "_classical", lambda self, image, with_map, trace=None:
+                                ClassicalDetector(max_centre_offset=1e-6).detect(image, trace=trace))
+        else:
+            monkeypatch.undo()
+        det = HMADetector.with_backend(OracleBackend(mask), None, scales=(1.0,), small_scales=None, mirror_map="never",
+                                       max_side=max_side, large_classical_veto=veto)
+        return det.detect(img)
+
+    for max_side, veto, reject in [(128, False, True), (512, True, True), (128, True, False)]:
+        res = detect(max_side, veto, reject)
+        assert len(res.detections) == 1 and res.probability.max() >= 0.5
+    res = detect(128, True, True)
+    assert res.detections == [] and res.probability.max() < 0.5  # dropped, its blob cleared
