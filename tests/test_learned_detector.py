@@ -592,3 +592,4 @@ def test_images_seen_downscaled_take_the_classical_detectors_veto(monkeypatch):
         assert len(res.detections) == 1 and res.probability.max() >= 0.5
     res = detect(128, True, True)
     assert res.detections == [] and res.probability.max() < 0.5  # dropped, its blob cleared
+    assert HMADetector.with_backend(OracleBackend(mask)).settings.large_classical_veto  # since stop 59
