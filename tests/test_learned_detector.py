@@ -593,3 +593,13 @@ def test_images_seen_downscaled_take_the_classical_detectors_veto(monkeypatch):
     res = detect(128, True, True)
     assert res.detections == [] and res.probability.max() < 0.5  # dropped, its blob cleared
     assert HMADetector.with_backend(OracleBackend(mask)).settings.large_classical_veto  # since stop 59
+
+
+def test_the_veto_stages_are_stages_the_classical_scan_names():
+    # the classical trace's stages are checked against the miss-stages bench's list in its own tests
+    from bench_loader import load_bench
+    from learned.adapter import CLASSICAL_VETO_STAGES
+
+    known = set(load_bench("classical_miss_stages").ORDER)
+    assert {st.split(":")[0] for st in CLASSICAL_VETO_STAGES} <= known
+    assert "prefilter" not in CLASSICAL_VETO_STAGES and "kept" not in CLASSICAL_VETO_STAGES
