@@ -913,6 +913,8 @@ class HMADetector:
                     if keep and s.min_centre_reach > 0:
                         reach = b.centre.reach
                         keep = (centre_reach(gray, cx, cy, b.radius) if reach is None else reach) >= s.min_centre_reach
+            # on images seen downscaled, where the classical scan judged this centre not a marker (a tag's
+            # bit corner, a checker's) and kept none there, hma's marker was mostly false (large_classical_veto)
             vetoed = keep and veto is not None and veto.says_no(cx, cy, b.radius)
             keep = keep and not vetoed
             if not keep:

@@ -576,13 +576,18 @@ def test_images_seen_downscaled_take_the_classical_detectors_veto(monkeypatch):
     from cpdetect.classical import ClassicalDetector
 
     img, mask, _ = rendered("square", center=(128.0, 128.0), radius=26.0, angle=0.3)
+    plain = adapter.HMADetector._classical
+    strict = {"on": False}
+
+    def classical(self, image, with_map, trace=None):
+        if strict["on"]:
+            return ClassicalDetector(max_centre_offset=1e-6).detect(image, trace=trace)
+        return plain(self, image, with_map, trace)
+
+    monkeypatch.setattr(adapter.HMADetector, "_classical", classical)
 
     def detect(max_side, veto, reject):
-        if reject:
-            monkeypatch.setattr(adapter.HMADetector, "_classical", lambda self, image, with_map, trace=None:
-                                ClassicalDetector(max_centre_offset=1e-6).detect(image, trace=trace))
-        else:
-            monkeypatch.undo()
+        strict["on"] = reject
         det = HMADetector.with_backend(OracleBackend(mask), None, scales=(1.0,), small_scales=None, mirror_map="never",
                                        max_side=max_side, large_classical_veto=veto)
         return det.detect(img)
