@@ -878,8 +878,9 @@ class HMADetector:
         cut = (s.instance_threshold if s.instance_threshold is not None else model.threshold) if model else None
         blobs, labels = self.candidates(gray, prob, f, seeds=seeds)
         clear_below = self.clear_rejected_below_for(w, h)
-        drop_seeds = s.large_drop_unverified_seeds and self.seen_downscaled(w, h)
-        clear_seeds = s.large_clear_unverified_seeds and self.seen_downscaled(w, h)
+        downscaled = self.seen_downscaled(w, h)
+        drop_seeds = s.large_drop_unverified_seeds and downscaled
+        clear_seeds = s.large_clear_unverified_seeds and downscaled
         witnessed = None if witnesses is None else {
             int(labels[r, c]) for c, r in (_map_pixel(d.x, d.y, f, labels.shape) for d in witnesses)}
         out: list[MarkerDetection] = []
@@ -888,6 +889,11 @@ class HMADetector:
             # a blob that yields no marker is cleared from the map unless the network is sure of it
             # (and a witness, when there are any to ask, saw a marker on it too)
             unsure = b.mean_p < clear_below or (witnessed is not None and b.label not in witnessed)
+            # a centre only a refined X-corner seed gave, neither the marker model nor a classical marker
+            # confirming it: on images seen downscaled mostly checkerboard and shadow corners, whatever the
+            # network's confidence (large_drop_unverified_seeds drops it, large_clear_unverified_seeds
+            # clears its blob)
+            seed_only = b.centre is not None and b.centre.kind == "seed" and not b.centre.classical
             cx, cy = b.centroid
             score = float(np.clip(b.mean_p, 0.0, 1.0))
             sigma = max(0.5, 0.25 * b.radius)
@@ -902,9 +908,7 @@ class HMADetector:
                         # the classical detector's own verification stands beside the model's
                         keep = score >= cut or b.centre.classical
                     cx, cy, sigma, mtype = b.centre.x, b.centre.y, b.centre.sigma, b.centre.type
-                    # on images seen downscaled such centres were mostly checkerboard and shadow
-                    # corners, whatever the network's confidence (large_drop_unverified_seeds)
-                    if keep and drop_seeds and b.centre.kind == "seed" and not b.centre.classical:
+                    if keep and drop_seeds and seed_only:
                         keep = False
                     # sym180 is measured only for the ranker's candidates (the rules leave it 0)
                     if keep and self.centre_ranker is not None and b.centre.kind != "verified" \
@@ -918,9 +922,6 @@ class HMADetector:
             vetoed = keep and veto is not None and veto.says_no(cx, cy, b.radius)
             keep = keep and not vetoed
             if not keep:
-                # on images seen downscaled a sure blob around an unconfirmed X-corner seed was mostly a
-                # checkerboard's or a shadow's corner (large_clear_unverified_seeds)
-                seed_only = b.centre is not None and b.centre.kind == "seed" and not b.centre.classical
                 if unsure or (clear_seeds and seed_only) or vetoed:
                     rejected.append(b.label)
                 continue
