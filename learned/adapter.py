@@ -168,7 +168,13 @@ class HMASettings:
     five and the same on one, mean pixel IoU 0.841 -> 0.896; the classical scan adds about 0.3 s per
     45 MP image. Not for the images the network sees whole: on four seen 640 x 480 sets it would have
     dropped 52 true markers for 8 false ones (hma finds many markers there that the classical score
-    turns down). max_seeds: X-corner
+    turns down). large_classical_seeds: on the images the network sees downscaled, the classical
+    detector's markers (from the run the veto makes anyway, or a run of their own) serve as seeds, as
+    ``classical_seeds`` gives them on every image: a centre one of them confirms is kept, and its blob
+    stays in the map, whatever ``large_drop_unverified_seeds`` / ``large_clear_unverified_seeds`` and
+    the instance model say of a seed nothing confirmed. On seen 45 MP sets those two rules had dropped
+    markers partly out of frame (radius 835 px on 15800, 384 px on 15700) whose centre the classical
+    detector had found. max_seeds: X-corner
     seeds tried per instance besides the centroid (0 = centroid only). type_by: "model" (the
     classical outline fit at the centre, falling back to shape) or "shape". threads: CPU
     threads of the network (None, the default: 1 for torch, OpenCV's own setting, all cores, for
@@ -343,6 +349,7 @@ class HMASettings:
     large_drop_unverified_seeds: bool = True
     large_clear_unverified_seeds: bool = True
     large_classical_veto: bool = True
+    large_classical_seeds: bool = False
     max_seeds: int = 3
     type_by: str = "model"
     threads: int | None = None
@@ -732,11 +739,13 @@ class HMADetector:
                                    seconds=time.perf_counter() - t0,
                                    extras={"backend": self.backend.name, "scales": [], "probability_factor": 1.0,
                                            "network": self._network_for(w, h)})
-        veto_on = s.large_classical_veto and self.seen_downscaled(w, h)
+        downscaled = self.seen_downscaled(w, h)
+        veto_on = s.large_classical_veto and downscaled
+        seeds_on = s.classical_seeds or (s.large_classical_seeds and downscaled)
         trace: list | None = [] if veto_on else None
         classical = self._classical(source, s.classical_markers, trace) \
-            if s.classical_seeds or s.classical_markers or veto_on else None
-        seeds = classical.detections if s.classical_seeds else None
+            if seeds_on or s.classical_markers or veto_on else None
+        seeds = classical.detections if seeds_on else None
         veto = ClassicalVeto.from_trace(trace, classical.detections) if veto_on else None
         pm = self.probability(gray)
         witnesses = classical.detections if s.classical_markers else None

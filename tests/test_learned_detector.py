@@ -2,6 +2,7 @@
 and the detector contract with the shipped weights."""
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 import textwrap
@@ -552,6 +553,34 @@ def test_images_seen_downscaled_can_clear_sure_blobs_around_unconfirmed_seeds(mo
     assert kept_in_map(512, False) and kept_in_map(512, True) and kept_in_map(128, False)  # not downscaled, or off
     assert kept_in_map(128, True) == (kind != "seed" or classical)
     assert HMADetector.with_backend(OracleBackend(mask)).settings.large_clear_unverified_seeds  # since stop 59
+
+
+@pytest.mark.parametrize("max_side,on,kept", [(512, True, 1), (128, False, 0), (128, True, 1)])
+def test_images_seen_downscaled_can_take_classical_markers_as_seeds(monkeypatch, max_side, on, kept):
+    # a centre only a seed gave is dropped on a downscaled image (large_drop_unverified_seeds) unless
+    # the classical detector, given the image, found a marker there too
+    import learned.adapter as adapter
+
+    img, mask, _ = rendered("square", center=(128.0, 128.0), radius=26.0, angle=0.3)
+    given = []
+
+    def one_blob(self, gray, prob, f, seeds=None, loose=False):
+        given.append(seeds)
+        centre = adapter._Centre(128.02, 127.98, 0.05, "seed", type="square", sym180=0.9, reach=1.0)
+        if seeds:
+            centre = adapter._with_classical(centre, seeds, 26.0)
+        labels = (prob >= 0.5).astype(np.int32)
+        return [adapter.BlobCandidate(1, (0, 0, prob.shape[1], prob.shape[0]), 26.0, 0.95, (128.0, 128.0), centre)], labels
+
+    monkeypatch.setattr(adapter.HMADetector, "candidates", one_blob)
+    det = HMADetector.with_backend(OracleBackend(mask), None, scales=(1.0,), small_scales=None, mirror_map="never",
+                                   max_side=max_side, large_classical_veto=False, large_classical_seeds=on)
+    res = det.detect(img)
+    assert len(res.detections) == kept and (res.probability.max() >= 0.5) == bool(kept)
+    if max_side == 128 and on:  # the classical marker of the rendered one, within 0.1 px
+        assert len(given[0]) == 1 and math.hypot(given[0][0].x - 128.0, given[0][0].y - 128.0) < 0.1
+    else:
+        assert given[0] is None  # the classical detector is not asked (nothing else needs it here)
 
 
 def test_classical_veto_needs_a_rejection_at_the_centre_and_no_classical_marker():
