@@ -174,7 +174,13 @@ class HMASettings:
     stays in the map, whatever ``large_drop_unverified_seeds`` / ``large_clear_unverified_seeds`` and
     the instance model say of a seed nothing confirmed. On seen 45 MP sets those two rules had dropped
     markers partly out of frame (radius 835 px on 15800, 384 px on 15700) whose centre the classical
-    detector had found. max_seeds: X-corner
+    detector had found. classical_centres: wherever classical markers are given as seeds (either
+    setting above), a blob on which one lies (at its map pixel) and whose chosen centre none of them
+    confirms takes the best-ranked of its centre options one confirms, else that classical marker's
+    own centre, type and score (:func:`_classical_centre`): on seen 45 MP set 15500 a marker of radius
+    841 px centred 15 px from the frame's edge, found by the classical detector 0.03 px off, whose
+    blob's refinement (a window of the blob's radius, running off the image) gave only the centroid
+    490 px off. max_seeds: X-corner
     seeds tried per instance besides the centroid (0 = centroid only). type_by: "model" (the
     classical outline fit at the centre, falling back to shape) or "shape". threads: CPU
     threads of the network (None, the default: 1 for torch, OpenCV's own setting, all cores, for
@@ -350,6 +356,7 @@ class HMASettings:
     large_clear_unverified_seeds: bool = True
     large_classical_veto: bool = True
     large_classical_seeds: bool = False
+    classical_centres: bool = False
     max_seeds: int = 3
     type_by: str = "model"
     threads: int | None = None
@@ -832,6 +839,7 @@ class HMADetector:
         binary = (prob >= s.threshold).astype(np.uint8)
         n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
         ph, pw = labels.shape
+        seed_labels = [int(labels[r, c]) for c, r in (_map_pixel(d.x, d.y, f, labels.shape) for d in seeds or [])]
         out: list[BlobCandidate] = []
         for k in range(1, n):
             x0, y0, bw, bh, area = (int(v) for v in stats[k])
@@ -864,6 +872,10 @@ class HMADetector:
                 c = self._refined_centre(gray, labels, f, k, blob.bbox, radius, blob.centroid, loose, extra)
             if c is not None and seeds:
                 c = _with_classical(c, seeds, radius)
+            if seeds and s.classical_centres and not (c is not None and c.classical):
+                on_blob = [d for d, lab in zip(seeds, seed_labels) if lab == k]
+                if on_blob:
+                    c = _classical_centre(gray, blob.options, on_blob, radius)
             blob.centre = c
             if c is not None:
                 blob.features = blob_features(
@@ -1189,6 +1201,22 @@ class _Centre:
     blob_sym: float = 0.0
     reach: float | None = None  # centre_reach at this centre when already measured (the ranker's candidates)
     outline: np.ndarray | None = dataclasses.field(default=None, compare=False)  # the marker model's, when verified
+
+
+def _classical_centre(gray: np.ndarray, options: list | None, on_blob: list[MarkerDetection],
+                      radius: float) -> _Centre:
+    """The centre of a blob on which the classical detector found markers (``on_blob``) that its own
+    choice of centre does not agree with (``classical_centres``): the best-ranked of its centre
+    ``options`` that one of them confirms (:func:`_with_classical`), else the best-scored classical
+    marker's own centre, typed and scored by the classical detector, as the marker model verified it
+    (a centre the blob's refinement could not give: half out of frame, where its window runs off the
+    image)."""
+    confirmed = [o for o in options or [] if _with_classical(o[0], on_blob, radius).classical]
+    if confirmed:
+        return dataclasses.replace(max(confirmed, key=lambda o: o[2])[0], classical=True)
+    d = max(on_blob, key=lambda m: m.score)
+    return _Centre(float(d.x), float(d.y), max(float(d.sigma_px), 1e-3), "verified", d.type, float(d.score),
+                   classical=True, reach=centre_reach(gray, d.x, d.y, d.radius_px))
 
 
 def _with_classical(c: _Centre, found: list[MarkerDetection], radius: float) -> _Centre:

@@ -583,6 +583,40 @@ def test_images_seen_downscaled_can_take_classical_markers_as_seeds(monkeypatch,
         assert given[0] is None  # the classical detector is not asked (nothing else needs it here)
 
 
+@pytest.mark.parametrize("on", [False, True])
+def test_a_blob_can_take_the_classical_centre_its_own_choice_missed(monkeypatch, on):
+    # the blob's refinement gives a centre 12 px off (as one whose window runs off the frame can); the
+    # classical detector found the marker on the blob
+    import learned.adapter as adapter
+
+    img, mask, _ = rendered("square", center=(128.0, 128.0), radius=26.0, angle=0.3)
+    off = adapter._Centre(140.0, 128.0, 0.05, "seed", type="square", sym180=0.9, reach=1.0)
+    monkeypatch.setattr(adapter.HMADetector, "_refined_centre", lambda self, *a, **k: off)  # no ranker here
+    det = HMADetector.with_backend(OracleBackend(mask), None, scales=(1.0,), small_scales=None, mirror_map="never",
+                                   max_side=128, large_classical_veto=False, large_drop_unverified_seeds=False,
+                                   large_classical_seeds=True, classical_centres=on)
+    res = det.detect(img)
+    at_centre = [d for d in res.detections if math.hypot(d.x - 128.0, d.y - 128.0) < 1.0]
+    assert len(res.detections) == 1 and len(at_centre) == int(on)
+    if on:
+        assert math.hypot(at_centre[0].x - 128.0, at_centre[0].y - 128.0) < 0.1 and at_centre[0].type == "square"
+
+
+def test_the_classical_centre_prefers_an_option_it_confirms():
+    from cpdetect.types import MarkerDetection
+    from learned.adapter import _Centre, _classical_centre
+
+    gray = np.zeros((64, 64), np.uint8)
+    found = [MarkerDetection(30.0, 30.0, 0.9, "circle", 20.0, 0.02)]
+    near = _Centre(30.4, 30.0, 0.1, "seed", type="square")
+    far = _Centre(40.0, 30.0, 0.1, "verified", type="square")
+    c = _classical_centre(gray, [(far, {}, 0.9), (near, {}, 0.2)], found, 20.0)
+    assert (c.x, c.y, c.kind, c.type, c.classical) == (30.4, 30.0, "seed", "square", True)  # within 1.5 px
+    c = _classical_centre(gray, [(far, {}, 0.9)], found, 20.0)
+    assert (c.x, c.y, c.kind, c.type, c.model_score, c.classical) == (30.0, 30.0, "verified", "circle", 0.9, True)
+    assert c.sigma == pytest.approx(0.02) and _classical_centre(gray, None, found, 20.0).x == 30.0
+
+
 def test_classical_veto_needs_a_rejection_at_the_centre_and_no_classical_marker():
     from cpdetect.classical import TAG_FIELD
     from cpdetect.types import MarkerDetection
