@@ -13,7 +13,9 @@ Steps for one image (uint8 gray or BGR; a path is read as gray):
    0.795 to 0.850 and the mean centre error from 0.121 to 0.075 px (the centroid is a poor seed under perspective,
    occlusion and at the image border). With ``classical_seeds`` the classical detector's markers on
    the component are tried first, and a blob whose centre one of them confirms is kept (a fresh
-   300-image test-split set: instance F1 0.928 -> 0.934). With a centre ranker beside the weights
+   300-image test-split set: instance F1 0.928 -> 0.934); on images the network sees downscaled they
+   are given by default (``large_classical_seeds``), and a blob on which one lies takes its centre where
+   the blob's own choice disagrees (``classical_centres``). With a centre ranker beside the weights
    (``centre_rank.json``, :mod:`learned.centre_choice`) every seed (up to ``rank_seeds``, the most
    point-symmetric of the ``seed_pool`` strongest X-corners) is refined instead, and the candidate
    it scores highest from the refinement's evidence and the symmetry of the image and the blob
