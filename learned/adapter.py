@@ -13,9 +13,9 @@ Steps for one image (uint8 gray or BGR; a path is read as gray):
    0.795 to 0.850 and the mean centre error from 0.121 to 0.075 px (the centroid is a poor seed under perspective,
    occlusion and at the image border). With ``classical_seeds`` the classical detector's markers on
    the component are tried first, and a blob whose centre one of them confirms is kept (a fresh
-   300-image test-split set: instance F1 0.928 -> 0.934); on images the network sees downscaled they
-   are given by default (``large_classical_seeds``), and a blob on which one lies takes its centre where
-   the blob's own choice disagrees (``classical_centres``). With a centre ranker beside the weights
+   300-image test-split set: instance F1 0.928 -> 0.934); ``large_classical_seeds`` gives them on
+   images the network sees downscaled only, and with ``classical_centres`` a blob on which one lies
+   takes its centre where the blob's own choice disagrees (both opt-in). With a centre ranker beside the weights
    (``centre_rank.json``, :mod:`learned.centre_choice`) every seed (up to ``rank_seeds``, the most
    point-symmetric of the ``seed_pool`` strongest X-corners) is refined instead, and the candidate
    it scores highest from the refinement's evidence and the symmetry of the image and the blob
@@ -182,11 +182,13 @@ class HMASettings:
     own centre, type and score (:func:`_classical_centre`): on seen 45 MP set 15500 a marker of radius
     841 px centred 15 px from the frame's edge, found by the classical detector 0.03 px off, whose
     blob's refinement (a window of the blob's radius, running off the image) gave only the centroid
-    490 px off. Both are the default since stop 60, together, by a rule written before its six fresh
-    45 MP sets were read (17200-17700): 282 -> 284 found, 6 -> 6 false, no set's instance F1 or pixel
-    IoU lower, mean IoU 0.8885 -> 0.8905, centre unchanged to 0.001 px. large_classical_seeds alone had
-    failed its own rule on 16600-17100 (278 -> 280 found, 3 -> 4 false, mean IoU 0.8812 -> 0.8773: a
-    tag's bit-cell corner the classical detector kept confirmed hma's blob there, 17100's IoU -0.024);
+    490 px off. Both opt-in (stop 60). large_classical_seeds alone failed its rule on fresh 16600-17100
+    (278 -> 280 found, 3 -> 4 false, mean IoU 0.8812 -> 0.8773: a tag's bit-cell corner the classical
+    detector kept confirmed hma's blob there, 17100's IoU -0.024). Both together passed a second rule
+    on fresh 17200-17700 (282 -> 284 found, 6 -> 6 false, mean IoU 0.8885 -> 0.8905) but on 16600-17100
+    gave 278 -> 280 found, 3 -> 5 false, mean IoU 0.8812 -> 0.8549: on 17000 (0.924 -> 0.790) a
+    classical false marker on a large checkerboard's corner became the centre of the network's blob
+    over the board. Over all twelve sets they lower mean IoU (0.8849 -> 0.8727), so they stay opt-in;
     learned/weights/default/TRAINING.md. max_seeds: X-corner
     seeds tried per instance besides the centroid (0 = centroid only). type_by: "model" (the
     classical outline fit at the centre, falling back to shape) or "shape". threads: CPU
@@ -362,8 +364,8 @@ class HMASettings:
     large_drop_unverified_seeds: bool = True
     large_clear_unverified_seeds: bool = True
     large_classical_veto: bool = True
-    large_classical_seeds: bool = True
-    classical_centres: bool = True
+    large_classical_seeds: bool = False
+    classical_centres: bool = False
     max_seeds: int = 3
     type_by: str = "model"
     threads: int | None = None

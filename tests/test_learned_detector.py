@@ -581,7 +581,7 @@ def test_images_seen_downscaled_can_take_classical_markers_as_seeds(monkeypatch,
         assert len(given[0]) == 1 and math.hypot(given[0][0].x - 128.0, given[0][0].y - 128.0) < 0.1
     else:
         assert given[0] is None  # the classical detector is not asked (nothing else needs it here)
-    assert HMADetector.with_backend(OracleBackend(mask)).settings.large_classical_seeds  # since stop 60
+    assert not HMADetector.with_backend(OracleBackend(mask)).settings.large_classical_seeds  # opt-in (stop 60)
 
 
 @pytest.mark.parametrize("on", [False, True])
@@ -601,7 +601,7 @@ def test_a_blob_can_take_the_classical_centre_its_own_choice_missed(monkeypatch,
     assert len(res.detections) == 1 and len(at_centre) == int(on)
     if on:
         assert math.hypot(at_centre[0].x - 128.0, at_centre[0].y - 128.0) < 0.1 and at_centre[0].type == "square"
-    assert HMADetector.with_backend(OracleBackend(mask)).settings.classical_centres  # since stop 60
+    assert not HMADetector.with_backend(OracleBackend(mask)).settings.classical_centres  # opt-in (stop 60)
 
 
 def test_the_classical_centre_prefers_an_option_it_confirms():
