@@ -848,7 +848,9 @@ class HMADetector:
         binary = (prob >= s.threshold).astype(np.uint8)
         n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
         ph, pw = labels.shape
-        seed_labels = [int(labels[r, c]) for c, r in (_map_pixel(d.x, d.y, f, labels.shape) for d in seeds or [])]
+        # the blob under each classical marker, for classical_centres only
+        seed_labels = [int(labels[r, c]) for c, r in (_map_pixel(d.x, d.y, f, labels.shape) for d in seeds)] \
+            if seeds and s.classical_centres else []
         out: list[BlobCandidate] = []
         for k in range(1, n):
             x0, y0, bw, bh, area = (int(v) for v in stats[k])
@@ -1220,9 +1222,10 @@ def _classical_centre(gray: np.ndarray, options: list | None, on_blob: list[Mark
     marker's own centre, typed and scored by the classical detector, as the marker model verified it
     (a centre the blob's refinement could not give: half out of frame, where its window runs off the
     image)."""
-    confirmed = [o for o in options or [] if _with_classical(o[0], on_blob, radius).classical]
+    confirmed = [(c, rank) for c, rank in ((_with_classical(o[0], on_blob, radius), o[2]) for o in options or [])
+                 if c.classical]
     if confirmed:
-        return dataclasses.replace(max(confirmed, key=lambda o: o[2])[0], classical=True)
+        return max(confirmed, key=lambda cr: cr[1])[0]
     d = max(on_blob, key=lambda m: m.score)
     return _Centre(float(d.x), float(d.y), max(float(d.sigma_px), 1e-3), "verified", d.type, float(d.score),
                    classical=True, reach=centre_reach(gray, d.x, d.y, d.radius_px))
