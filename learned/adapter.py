@@ -21,7 +21,8 @@ Steps for one image (uint8 gray or BGR; a path is read as gray):
    it scores highest from the refinement's evidence and the symmetry of the image and the blob
    about it wins;
    Blobs that yield no marker, and that the network is not sure of (mean P < ``clear_rejected_below``),
-   are cleared from the probability map the detector returns: louvers, window crosses, dark arches;
+   are cleared from the probability map the detector returns: louvers, window crosses, dark arches
+   (with ``large_clear_flat_below``, on images seen downscaled, also sure ones of one grey tone);
    on images seen at ``small_scales`` (by default), that map is the mean with the mirror image's
    (``mirror_map``, :mod:`learned.mirror_map`);
 4. keep or drop: with an instance model beside the weights (``instance_score.json``, see
@@ -57,6 +58,7 @@ from cpdetect.detector import as_gray_uint8, settings_from_dataclass
 from cpdetect.refine import METHODS, refine_in_outline
 from cpdetect.types import DetectionResult, MarkerDetection
 
+from .blob_tone import interior_spread
 from .centre_choice import CentreRanker, load_centre_ranker
 from .instances import InstanceModel, blob_features, load_instance_model
 from .mirror_map import keep_blobs_of, mirrored_mean
@@ -189,7 +191,13 @@ class HMASettings:
     gave 278 -> 280 found, 3 -> 5 false, mean IoU 0.8812 -> 0.8549: on 17000 (0.924 -> 0.790) a
     classical false marker on a large checkerboard's corner became the centre of the network's blob
     over the board. Over all twelve sets they lower mean IoU (0.8849 -> 0.8727), so they stay opt-in;
-    learned/weights/default/TRAINING.md. max_seeds: X-corner
+    learned/weights/default/TRAINING.md. large_clear_flat_below: on the images the network sees
+    downscaled, a blob that yields no marker is also cleared from the map, however sure the network
+    is of it, when its inside shows one grey tone: :func:`learned.blob_tone.interior_spread` under
+    this many grey levels (0, the default, is off). On 36 seen 45 MP sets the blobs that stay in the
+    map without a marker held 544,518 false map pixels and 380,975 true ones; those under 3 levels
+    (plain panels, dark splotches) about 250,000 false and 15,961 true (covered markers of which one
+    dark sector shows), and no kept marker's blob was under 19.9 (stop 61). max_seeds: X-corner
     seeds tried per instance besides the centroid (0 = centroid only). type_by: "model" (the
     classical outline fit at the centre, falling back to shape) or "shape". threads: CPU
     threads of the network (None, the default: 1 for torch, OpenCV's own setting, all cores, for
@@ -366,6 +374,7 @@ class HMASettings:
     large_classical_veto: bool = True
     large_classical_seeds: bool = False
     classical_centres: bool = False
+    large_clear_flat_below: float = 0.0
     max_seeds: int = 3
     type_by: str = "model"
     threads: int | None = None
@@ -433,6 +442,8 @@ class HMASettings:
             raise ValueError("clear_rejected_below must be in [0, 1]")
         if self.large_clear_rejected_below is not None and not 0.0 <= self.large_clear_rejected_below <= 1.0:
             raise ValueError("large_clear_rejected_below must be in [0, 1] (or null)")
+        if not 0.0 <= self.large_clear_flat_below <= 255.0:
+            raise ValueError("large_clear_flat_below must be in [0, 255] (grey levels; 0 is off)")
         if not 0.0 <= self.colour_min_mean_p <= 1.0:
             raise ValueError("colour_min_mean_p must be in [0, 1]")
         if not 0.0 <= self.classical_min_support < 1.0:
@@ -913,6 +924,7 @@ class HMADetector:
         downscaled = self.seen_downscaled(w, h)
         drop_seeds = s.large_drop_unverified_seeds and downscaled
         clear_seeds = s.large_clear_unverified_seeds and downscaled
+        flat_below = s.large_clear_flat_below if downscaled else 0.0
         witnessed = None if witnesses is None else {
             int(labels[r, c]) for c, r in (_map_pixel(d.x, d.y, f, labels.shape) for d in witnesses)}
         out: list[MarkerDetection] = []
@@ -954,7 +966,8 @@ class HMADetector:
             vetoed = keep and veto is not None and veto.says_no(cx, cy, b.radius)
             keep = keep and not vetoed
             if not keep:
-                if unsure or (clear_seeds and seed_only) or vetoed:
+                if unsure or (clear_seeds and seed_only) or vetoed or (
+                        flat_below > 0 and self._flat(gray, labels, b, f, flat_below)):
                     rejected.append(b.label)
                 continue
             if mtype is None:
@@ -975,6 +988,14 @@ class HMADetector:
             clear[rejected] = True
             prob = np.where(clear[labels], np.float32(0.0), prob)
         return dedupe(out), prob
+
+    @staticmethod
+    def _flat(gray, labels, b: "BlobCandidate", f: float, below: float) -> bool:
+        """Whether blob ``b`` shows one grey tone inside (:func:`learned.blob_tone.interior_spread`
+        under ``below`` levels): no marker's paint is there (``large_clear_flat_below``)."""
+        x0, y0, bw, bh = b.bbox
+        spread = interior_spread(gray, labels[y0:y0 + bh, x0:x0 + bw] == b.label, b.bbox, f, b.radius)
+        return spread is not None and spread < below
 
     def _type_by_shape(self, gray, comp_prob, origin, f, radius, cx, cy) -> str:
         """Type from the component's outline (``comp_prob``: its probabilities, 0 elsewhere, with its

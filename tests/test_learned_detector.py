@@ -532,6 +532,16 @@ def test_images_seen_downscaled_can_drop_centres_only_an_x_corner_seed_gave(monk
     assert HMADetector.with_backend(OracleBackend(mask)).settings.large_drop_unverified_seeds  # since stop 58
 
 
+def _kept_in_map(img, mask, max_side, **settings) -> bool:
+    """Whether the one sure blob (``_one_sure_blob``) stays in the returned map; min_radius_px over the
+    blob's radius, so that it yields no marker whatever its centre."""
+    det = HMADetector.with_backend(OracleBackend(mask), None, scales=(1.0,), small_scales=None, mirror_map="never",
+                                   max_side=max_side, min_radius_px=40.0, **settings)
+    res = det.detect(img)
+    assert res.detections == []
+    return float(res.probability.max()) >= 0.5
+
+
 @pytest.mark.parametrize("kind,classical", [("seed", False), ("seed", True), ("verified", False), ("centroid", False)])
 def test_images_seen_downscaled_can_clear_sure_blobs_around_unconfirmed_seeds(monkeypatch, kind, classical):
     # a blob the network is sure of stays in the map when it yields no marker, unless, on an image the
@@ -543,16 +553,36 @@ def test_images_seen_downscaled_can_clear_sure_blobs_around_unconfirmed_seeds(mo
                                                 classical=classical))
 
     def kept_in_map(max_side, clear):
-        # min_radius_px over the blob's radius: the blob yields no marker whatever its centre
-        det = HMADetector.with_backend(OracleBackend(mask), None, scales=(1.0,), small_scales=None, mirror_map="never",
-                                       max_side=max_side, min_radius_px=40.0, large_clear_unverified_seeds=clear)
-        res = det.detect(img)
-        assert res.detections == []
-        return float(res.probability.max()) >= 0.5
+        return _kept_in_map(img, mask, max_side, large_clear_unverified_seeds=clear)
 
     assert kept_in_map(512, False) and kept_in_map(512, True) and kept_in_map(128, False)  # not downscaled, or off
     assert kept_in_map(128, True) == (kind != "seed" or classical)
     assert HMADetector.with_backend(OracleBackend(mask)).settings.large_clear_unverified_seeds  # since stop 59
+
+
+@pytest.mark.parametrize("flat", [True, False])
+def test_images_seen_downscaled_can_clear_sure_blobs_of_one_tone(monkeypatch, flat):
+    # a sure blob that yields no marker stays in the map, unless, on an image the network sees downscaled
+    # and with large_clear_flat_below set, its inside shows one grey tone (a plain panel, no marker paint)
+    import learned.adapter as adapter
+
+    img, mask, _ = rendered("square", center=(128.0, 128.0), radius=26.0, angle=0.3)
+    if flat:  # the same blob over a plain panel with sensor noise
+        rng = np.random.default_rng(3)
+        img = np.clip(50.0 + rng.normal(0.0, 3.0, img.shape), 0, 255).astype(np.uint8)
+    _one_sure_blob(monkeypatch, adapter._Centre(128.0, 128.0, 0.05, "centroid", type="square", sym180=0.9, reach=1.0))
+
+    def kept_in_map(max_side, below):
+        return _kept_in_map(img, mask, max_side, large_clear_flat_below=below)
+
+    assert kept_in_map(512, 3.0) and kept_in_map(128, 0.0)  # not downscaled, or off
+    assert kept_in_map(128, 3.0) == (not flat)
+    assert HMADetector.with_backend(OracleBackend(mask)).settings.large_clear_flat_below == 0.0  # opt-in
+
+
+def test_large_clear_flat_below_is_grey_levels():
+    with pytest.raises(ValueError, match="large_clear_flat_below"):
+        HMADetector.with_backend(OracleBackend(np.zeros((8, 8), np.uint8)), large_clear_flat_below=-1.0)
 
 
 @pytest.mark.parametrize("max_side,on,kept", [(512, True, 1), (128, False, 0), (128, True, 1)])
