@@ -577,7 +577,7 @@ def test_images_seen_downscaled_can_clear_sure_blobs_of_one_tone(monkeypatch, fl
 
     assert kept_in_map(512, 3.0) and kept_in_map(128, 0.0)  # not downscaled, or off
     assert kept_in_map(128, 3.0) == (not flat)
-    assert HMADetector.with_backend(OracleBackend(mask)).settings.large_clear_flat_below == 0.0  # opt-in
+    assert HMADetector.with_backend(OracleBackend(mask)).settings.large_clear_flat_below == 3.0  # since stop 61
 
 
 def test_large_clear_flat_below_is_grey_levels():
