@@ -918,7 +918,9 @@ class HMADetector:
         """The marker instances, and the probability map with the rejected blobs cleared (unless the
         network is sure of them, ``clear_rejected_below``, and, when ``witnesses`` is given, one of
         those markers lies on the blob); ``veto``: the classical detector's say (``large_classical_veto``),
-        whose vetoed blobs are cleared too."""
+        whose vetoed blobs are cleared too. On images seen downscaled, sure blobs are cleared as well
+        when their centre is a seed nothing confirmed (``large_clear_unverified_seeds``) or their inside
+        shows one grey tone (``large_clear_flat_below``)."""
         s = self.settings
         h, w = gray.shape
         model = self.instance_model
