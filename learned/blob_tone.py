@@ -1,9 +1,10 @@
 """How many grey tones the inside of a probability-map blob shows.
 
 A marker shows its dark and its bright paint wherever more than one of its sectors is visible, so a
-blob of the HMA map over a marker (a covered one, or one of low contrast, too) has two tones inside it. The blobs
-the network is sure of that yield no marker on 45 MP images are mostly plain panels and dark splotches,
-one tone from edge to edge (stop 61; the setting ``large_clear_flat_below`` of learned.adapter).
+blob of the HMA map over a marker (a covered one, or one of low contrast, too) has two tones inside
+it. The blobs the network is sure of that yield no marker on 45 MP images are mostly plain panels and
+dark splotches, one tone from edge to edge (stop 61; the setting ``large_clear_flat_below`` of
+learned.adapter). A marker of which only one sector shows is one tone too: its blob is cleared.
 """
 from __future__ import annotations
 

@@ -48,3 +48,13 @@ def test_the_surround_does_not_count():
 def test_a_blob_too_small_to_erode_says_nothing():
     inside, bbox, _, _, _ = _disc_blob(12.0, size=200)
     assert interior_spread(np.zeros((200, 200), np.uint8), inside, bbox, F, 12.0) is None
+
+
+def test_a_marker_showing_one_sector_is_one_tone():
+    # the known cost of the rule: where an occluder leaves one dark sector of a marker in view, the blob
+    # over that sector shows one tone, like a plain panel (three such blobs on 36 seen 45 MP sets)
+    inside, bbox, c, ix, iy = _disc_blob(400.0)
+    inside &= np.mgrid[0:inside.shape[0], 0:inside.shape[1]][1] < (c * F)  # the blob over one quadrant only
+    inside &= np.mgrid[0:inside.shape[0], 0:inside.shape[1]][0] < (c * F)
+    img = np.where((ix - c) * (iy - c) > 0, 40, 200).astype(np.uint8)
+    assert interior_spread(img, inside, bbox, F, 200.0) < 1.0
