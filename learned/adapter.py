@@ -660,6 +660,11 @@ def _map_pixel(x: float, y: float, f: float, shape: tuple[int, int]) -> tuple[in
     return min(max(col, 0), shape[1] - 1), min(max(row, 0), shape[0] - 1)
 
 
+def _labels_under(dets, f: float, labels: np.ndarray) -> list[int]:
+    """The component label (0: background) under each detection's centre, at its map pixel."""
+    return [int(labels[r, c]) for c, r in (_map_pixel(d.x, d.y, f, labels.shape) for d in dets)]
+
+
 class HMADetector:
     """The learned marker detector (HMA over HRNet-OCR), registered as ``hma``."""
 
@@ -824,9 +829,7 @@ class HMADetector:
         if n <= 1:
             return dets, prob
         held = np.zeros(n, bool)
-        for d in dets:
-            c, r = _map_pixel(d.x, d.y, f, labels.shape)
-            held[labels[r, c]] = True
+        held[_labels_under(dets, f, labels)] = True
         mean_p = np.bincount(labels.ravel(), weights=network.ravel(), minlength=n) \
             / np.maximum(stats[:, cv2.CC_STAT_AREA], 1)
         look = ~held & (mean_p >= s.colour_min_mean_p)
@@ -842,9 +845,7 @@ class HMADetector:
         if not added:
             return dets, prob
         back = np.zeros(n, bool)
-        for m in added:
-            c, r = _map_pixel(m.x, m.y, f, labels.shape)
-            back[labels[r, c]] = True
+        back[_labels_under(added, f, labels)] = True
         back[0] = False
         return dets + added, np.where(back[labels], np.maximum(prob, network), prob).astype(np.float32, copy=False)
 
@@ -864,8 +865,7 @@ class HMADetector:
         n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
         ph, pw = labels.shape
         # the blob under each classical marker, for classical_centres only
-        seed_labels = [int(labels[r, c]) for c, r in (_map_pixel(d.x, d.y, f, labels.shape) for d in seeds)] \
-            if seeds and s.classical_centres else []
+        seed_labels = _labels_under(seeds, f, labels) if seeds and s.classical_centres else []
         out: list[BlobCandidate] = []
         for k in range(1, n):
             x0, y0, bw, bh, area = (int(v) for v in stats[k])
@@ -931,8 +931,7 @@ class HMADetector:
         drop_seeds = s.large_drop_unverified_seeds and downscaled
         clear_seeds = s.large_clear_unverified_seeds and downscaled
         flat_below = s.large_clear_flat_below if downscaled else 0.0
-        witnessed = None if witnesses is None else {
-            int(labels[r, c]) for c, r in (_map_pixel(d.x, d.y, f, labels.shape) for d in witnesses)}
+        witnessed = None if witnesses is None else set(_labels_under(witnesses, f, labels))
         out: list[MarkerDetection] = []
         rejected: list[int] = []
         for b in blobs:

@@ -32,8 +32,7 @@ def interior_spread(gray: np.ndarray, inside: np.ndarray, bbox: tuple[int, int, 
     ix1, iy1 = min(w, int(np.ceil((x0 + bw) / f))), min(h, int(np.ceil((y0 + bh) / f)))
     if ix1 <= ix0 or iy1 <= iy0 or bw <= 0 or bh <= 0:
         return None
-    g = cv2.resize(np.ascontiguousarray(gray[iy0:iy1, ix0:ix1]), (bw, bh),
-                   interpolation=cv2.INTER_AREA).astype(np.float32)
+    g = cv2.resize(gray[iy0:iy1, ix0:ix1], (bw, bh), interpolation=cv2.INTER_AREA).astype(np.float32)
     r = radius_px * f
     e = max(1, int(round(ERODE_FRAC * r)))
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * e + 1, 2 * e + 1))
