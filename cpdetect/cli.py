@@ -14,13 +14,16 @@ import sys
 
 from .errors import CpdetectError
 
+DESCRIPTION = ("Find control-point markers (2x2 checker targets) in photographs and georeference "
+               "3D models with them.")
+
 COMMAND_MODULES = (
     "synth", "evaluate", "detect", "train", "export", "register", "georef", "compare", "demo",
 )
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="cpdetect", description=__doc__.splitlines()[0] if __doc__ else None)
+    parser = argparse.ArgumentParser(prog="cpdetect", description=DESCRIPTION)
     parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
     parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

@@ -29,6 +29,27 @@ def test_cpdetect_does_not_import_torch():
     assert "torch" not in mods
 
 
+def _parsers(parser):
+    """Every parser under ``parser`` (sub-commands and theirs), itself first."""
+    import argparse
+
+    yield parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                yield from _parsers(sub)
+
+
+def test_no_help_text_shows_docstring_markup():
+    from cpdetect.cli import build_parser
+
+    helps = [p.format_help() for p in _parsers(build_parser())]
+    assert len(helps) > 10  # every sub-command, and synth's kinds
+    for text in helps:
+        for markup in ("``", ":class:", ":func:", ":mod:", ":data:"):
+            assert markup not in text, text.splitlines()[0]
+
+
 def test_unknown_detector_lists_valid_names():
     with pytest.raises(UsageError) as e:
         get_detector("nope")
