@@ -201,7 +201,20 @@ class HMASettings:
     written before its test sets existed: on six fresh 45 MP sets (18000-18500) the same 295 true and
     0 false markers, pixel IoU 0.863 / 0.842 / 0.897 / 0.835 / 0.943 / 0.827 -> 0.918 / 0.920 / 0.896 /
     0.852 / 0.943 / 0.866 (mean 0.868 -> 0.899); learned/weights/default/TRAINING.md. Markers found
-    never change. max_seeds: X-corner
+    never change. large_spare_reach: on the images the network sees downscaled, a centre whose
+    four-sector pattern reaches into the centre at least this strongly (:func:`cpdetect.centre_reach.
+    centre_reach`, the X-corner's strength on a small ring around it against the ring of half the
+    blob's radius) keeps the marker that ``large_drop_unverified_seeds`` or ``large_classical_veto``
+    would drop (None: off). Uncovered, a marker gives 0.55-1 (blur lowers it); an occluder that
+    crosses the ring of half the blob's radius weakens the X-corner there and not near the centre,
+    and lifts it over 1. On 36 seen 45 MP sets (stops 59-61), of the centres those two rules alone
+    dropped, the seed-only ones at 1.0 or more were 11 true markers (most of them covered) and no false
+    one (the false ones reached 0.98 at most), the vetoed ones 6 true and 4 false (1.04-1.08: corners
+    of large checkerboards, point-symmetric about their centre, sym180 0.96-1.0, where the true ones
+    had 0.36-0.97). So a centre is spared only where its sym180 (the image's and the blob's
+    correlation with their half-turn about it, :mod:`learned.centre_choice`) is also under
+    ``large_spare_max_sym180``: a cover breaks a marker's point symmetry, a checkerboard keeps it.
+    max_seeds: X-corner
     seeds tried per instance besides the centroid (0 = centroid only). type_by: "model" (the
     classical outline fit at the centre, falling back to shape) or "shape". threads: CPU
     threads of the network (None, the default: 1 for torch, OpenCV's own setting, all cores, for
@@ -379,6 +392,8 @@ class HMASettings:
     large_classical_seeds: bool = False
     classical_centres: bool = False
     large_clear_flat_below: float = 3.0
+    large_spare_reach: float | None = None
+    large_spare_max_sym180: float = 0.9
     max_seeds: int = 3
     type_by: str = "model"
     threads: int | None = None
@@ -446,6 +461,10 @@ class HMASettings:
             raise ValueError("clear_rejected_below must be in [0, 1]")
         if self.large_clear_rejected_below is not None and not 0.0 <= self.large_clear_rejected_below <= 1.0:
             raise ValueError("large_clear_rejected_below must be in [0, 1] (or null)")
+        if not -1.0 <= self.large_spare_max_sym180 <= 1.0:
+            raise ValueError("large_spare_max_sym180 must be in [-1, 1] (a correlation)")
+        if self.large_spare_reach is not None and not self.large_spare_reach > 0:
+            raise ValueError("large_spare_reach must be positive (a ratio of X-corner strengths) or null (off)")
         if not 0.0 <= self.large_clear_flat_below <= 255.0:
             raise ValueError("large_clear_flat_below must be in [0, 255] (grey levels; 0 is off)")
         if not 0.0 <= self.colour_min_mean_p <= 1.0:
@@ -931,6 +950,7 @@ class HMADetector:
         drop_seeds = s.large_drop_unverified_seeds and downscaled
         clear_seeds = s.large_clear_unverified_seeds and downscaled
         flat_below = s.large_clear_flat_below if downscaled else 0.0
+        spare_reach = s.large_spare_reach if downscaled else None
         witnessed = None if witnesses is None else set(_labels_under(witnesses, f, labels))
         out: list[MarkerDetection] = []
         rejected: list[int] = []
@@ -957,7 +977,7 @@ class HMADetector:
                         # the classical detector's own verification stands beside the model's
                         keep = score >= cut or b.centre.classical
                     cx, cy, sigma, mtype = b.centre.x, b.centre.y, b.centre.sigma, b.centre.type
-                    if keep and drop_seeds and seed_only:
+                    if keep and drop_seeds and seed_only and not self._spared(gray, b, spare_reach):
                         keep = False
                     # sym180 is measured only for the ranker's candidates (the rules leave it 0)
                     if keep and self.centre_ranker is not None and b.centre.kind != "verified" \
@@ -968,7 +988,8 @@ class HMADetector:
                         keep = (centre_reach(gray, cx, cy, b.radius) if reach is None else reach) >= s.min_centre_reach
             # on images seen downscaled, where the classical scan judged this centre not a marker (a tag's
             # bit corner, a checker's) and kept none there, hma's marker was mostly false (large_classical_veto)
-            vetoed = keep and veto is not None and veto.says_no(cx, cy, b.radius)
+            vetoed = keep and veto is not None and veto.says_no(cx, cy, b.radius) \
+                and not self._spared(gray, b, spare_reach)
             keep = keep and not vetoed
             if not keep:
                 if unsure or (clear_seeds and seed_only) or vetoed or (
@@ -993,6 +1014,17 @@ class HMADetector:
             clear[rejected] = True
             prob = np.where(clear[labels], np.float32(0.0), prob)
         return dedupe(out), prob
+
+    def _spared(self, gray, b: "BlobCandidate", at_least: float | None) -> bool:
+        """Whether blob ``b``'s centre reaches ``at_least`` (:func:`centre_reach` with the blob's
+        radius) and is less point-symmetric than ``large_spare_max_sym180``; False when ``at_least``
+        is None: ``large_spare_reach``."""
+        if at_least is None or b.centre is None or not b.centre.sym180 < self.settings.large_spare_max_sym180:
+            return False
+        reach = b.centre.reach
+        if reach is None:
+            reach = centre_reach(gray, b.centre.x, b.centre.y, b.radius)
+        return reach >= at_least
 
     @staticmethod
     def _flat(gray, labels, b: "BlobCandidate", f: float, below: float) -> bool:

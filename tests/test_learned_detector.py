@@ -532,6 +532,49 @@ def test_images_seen_downscaled_can_drop_centres_only_an_x_corner_seed_gave(monk
     assert HMADetector.with_backend(OracleBackend(mask)).settings.large_drop_unverified_seeds  # since stop 58
 
 
+@pytest.mark.parametrize("reach,sym180", [(0.9, 0.5), (1.2, 0.5), (1.2, 0.95)])
+def test_images_seen_downscaled_keep_seed_centres_that_reach_in(monkeypatch, reach, sym180):
+    # large_spare_reach: a seed-only centre whose X-corner is at least as strong near the centre as on
+    # the ring of half the blob's radius (a covered marker), and which is not point-symmetric (a
+    # checkerboard's corner is), is kept where large_drop_unverified_seeds would drop it
+    import learned.adapter as adapter
+
+    img, mask, _ = rendered("square", center=(128.0, 128.0), radius=26.0, angle=0.3)
+    _one_sure_blob(monkeypatch, adapter._Centre(128.0, 128.0, 0.05, "seed", type="square", sym180=sym180,
+                                                reach=reach))
+
+    def found(max_side, spare):
+        det = HMADetector.with_backend(OracleBackend(mask), None, scales=(1.0,), small_scales=None, mirror_map="never",
+                                       max_side=max_side, large_classical_veto=False, large_spare_reach=spare)
+        return len(det.detect(img).detections)
+
+    assert found(512, None) == found(512, 1.0) == 1  # not downscaled: not dropped at all
+    assert found(128, None) == 0  # dropped, whatever the reach, with the setting off
+    assert found(128, 1.0) == int(reach >= 1.0 and sym180 < 0.9)
+    with pytest.raises(ValueError, match="large_spare_reach"):
+        HMADetector.with_backend(OracleBackend(mask), large_spare_reach=0.0)
+    with pytest.raises(ValueError, match="large_spare_max_sym180"):
+        HMADetector.with_backend(OracleBackend(mask), large_spare_max_sym180=1.5)
+
+
+def test_a_cover_across_half_the_radius_makes_the_x_corner_reach_over_one():
+    # the measure large_spare_reach reads: with the blob's radius (the visible part's equal-area
+    # radius), an occluder that crosses the ring of half that radius weakens the body's X-corner
+    # there and not near the centre; uncovered, the ratio stays under 1 (blur only lowers it)
+    from cpdetect.centre_reach import centre_reach
+    from cpdetect.markers import render_frontal
+
+    for mtype in ("square", "circle", "diagonal"):
+        img = render_frontal(mtype, 200, 40.0, angle_rad=0.3, dark=30.0, bright=220.0, background=120.0)
+        on = np.abs(img - 120.0) > 1.0
+        whole = math.sqrt(on.sum() / math.pi)
+        assert 0.85 < centre_reach(img.astype(np.uint8), 99.5, 99.5, whole) < 1.0
+        covered = img.copy()
+        covered[:, 112:] = 90.0  # from 12.5 px right of the centre on
+        visible = math.sqrt((on & (np.arange(200)[None, :] < 112)).sum() / math.pi)
+        assert 1.1 < centre_reach(covered.astype(np.uint8), 99.5, 99.5, visible) < 1.6
+
+
 def _kept_in_map(img, mask, max_side, **settings) -> bool:
     """Whether the one sure blob (``_one_sure_blob``) stays in the returned map; min_radius_px over the
     blob's radius, so that it yields no marker whatever its centre."""
@@ -693,6 +736,28 @@ def test_images_seen_downscaled_take_the_classical_detectors_veto(monkeypatch):
     res = detect(128, True, True)
     assert res.detections == [] and res.probability.max() < 0.5  # dropped, its blob cleared
     assert HMADetector.with_backend(OracleBackend(mask)).settings.large_classical_veto  # since stop 59
+
+
+@pytest.mark.parametrize("reach,sym180", [(0.9, 0.5), (1.2, 0.5), (1.2, 0.95)])
+def test_a_centre_that_reaches_in_outweighs_the_classical_veto(monkeypatch, reach, sym180):
+    # the real classical scan, told to reject every centre's grey, vetoes the marker unless its centre
+    # reaches in and is not point-symmetric (large_spare_reach, large_spare_max_sym180)
+    import learned.adapter as adapter
+    from cpdetect.classical import ClassicalDetector
+
+    img, mask, _ = rendered("square", center=(128.0, 128.0), radius=26.0, angle=0.3)
+    monkeypatch.setattr(adapter.HMADetector, "_classical",
+                        lambda self, image, with_map, trace=None: ClassicalDetector(max_centre_offset=1e-6).detect(
+                            image, trace=trace))
+    _one_sure_blob(monkeypatch, adapter._Centre(128.0, 128.0, 0.05, "verified", type="square", sym180=sym180,
+                                                reach=reach))
+
+    def found(spare):
+        det = HMADetector.with_backend(OracleBackend(mask), None, scales=(1.0,), small_scales=None, mirror_map="never",
+                                       max_side=128, large_spare_reach=spare)
+        return len(det.detect(img).detections)
+
+    assert found(None) == 0 and found(1.0) == int(reach >= 1.0 and sym180 < 0.9)
 
 
 def test_the_veto_stages_are_stages_the_classical_scan_names():
