@@ -214,6 +214,11 @@ class HMASettings:
     had 0.36-0.97). So a centre is spared only where its sym180 (the image's and the blob's
     correlation with their half-turn about it, :mod:`learned.centre_choice`) is also under
     ``large_spare_max_sym180``: a cover breaks a marker's point symmetry, a checkerboard keeps it.
+    Opt-in (stop 62): reach 1.0 alone failed its rule on fresh 45 MP sets 19600-20100 (284 -> 290
+    found, 3 -> 4 false, mean IoU 0.8025 -> 0.8174, but 20000 0.758 -> 0.731: a checkerboard corner);
+    with the gate at 0.9 it failed on fresh 20200-20700 (293 -> 297 found, 1 -> 2 false, mean IoU
+    0.9183 -> 0.8875: a checkerboard cut by the image edge, sym180 0.82, spared on 20500, 0.903 ->
+    0.697); learned/weights/default/TRAINING.md.
     max_seeds: X-corner
     seeds tried per instance besides the centroid (0 = centroid only). type_by: "model" (the
     classical outline fit at the centre, falling back to shape) or "shape". threads: CPU
