@@ -213,7 +213,8 @@ class HMASettings:
     of large checkerboards, point-symmetric about their centre, sym180 0.96-1.0, where the true ones
     had 0.36-0.97). So a centre is spared only where its sym180 (the image's and the blob's
     correlation with their half-turn about it, :mod:`learned.centre_choice`) is also under
-    ``large_spare_max_sym180``: a cover breaks a marker's point symmetry, a checkerboard keeps it.
+    ``large_spare_max_sym180``: a cover breaks a marker's point symmetry, a checkerboard keeps it
+    (without a centre ranker sym180 is not measured, 0, and only the reach decides).
     Opt-in (stop 62): reach 1.0 alone failed its rule on fresh 45 MP sets 19600-20100 (284 -> 290
     found, 3 -> 4 false, mean IoU 0.8025 -> 0.8174, but 20000 0.758 -> 0.731: a checkerboard corner);
     with the gate at 0.9 it failed on fresh 20200-20700 (293 -> 297 found, 1 -> 2 false, mean IoU
