@@ -685,6 +685,13 @@ def _map_pixel(x: float, y: float, f: float, shape: tuple[int, int]) -> tuple[in
     return min(max(col, 0), shape[1] - 1), min(max(row, 0), shape[0] - 1)
 
 
+def _reach_of(gray: np.ndarray, b: "BlobCandidate") -> float:
+    """Blob ``b``'s centre reach (:func:`centre_reach` with the blob's radius): the one its centre
+    carries (the ranker measures it), else measured now."""
+    c = b.centre
+    return centre_reach(gray, c.x, c.y, b.radius) if c.reach is None else c.reach
+
+
 def _labels_under(dets, f: float, labels: np.ndarray) -> list[int]:
     """The component label (0: background) under each detection's centre, at its map pixel."""
     return [int(labels[r, c]) for c, r in (_map_pixel(d.x, d.y, f, labels.shape) for d in dets)]
@@ -990,8 +997,7 @@ class HMADetector:
                             and not b.centre.classical and b.centre.sym180 < s.min_sym180_unverified:
                         keep = False
                     if keep and s.min_centre_reach > 0:
-                        reach = b.centre.reach
-                        keep = (centre_reach(gray, cx, cy, b.radius) if reach is None else reach) >= s.min_centre_reach
+                        keep = _reach_of(gray, b) >= s.min_centre_reach
             # on images seen downscaled, where the classical scan judged this centre not a marker (a tag's
             # bit corner, a checker's) and kept none there, hma's marker was mostly false (large_classical_veto)
             vetoed = keep and veto is not None and veto.says_no(cx, cy, b.radius) \
@@ -1027,10 +1033,7 @@ class HMADetector:
         is None: ``large_spare_reach``."""
         if at_least is None or b.centre is None or not b.centre.sym180 < self.settings.large_spare_max_sym180:
             return False
-        reach = b.centre.reach
-        if reach is None:
-            reach = centre_reach(gray, b.centre.x, b.centre.y, b.radius)
-        return reach >= at_least
+        return _reach_of(gray, b) >= at_least
 
     @staticmethod
     def _flat(gray, labels, b: "BlobCandidate", f: float, below: float) -> bool:
