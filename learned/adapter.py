@@ -61,6 +61,7 @@ from cpdetect.types import DetectionResult, MarkerDetection
 from .blob_tone import interior_spread
 from .centre_choice import CentreRanker, load_centre_ranker
 from .instances import InstanceModel, blob_features, load_instance_model
+from .lower_map import corrected_by_lower
 from .mirror_map import keep_blobs_of, mirrored_mean
 
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parent / "weights" / "default"
@@ -220,6 +221,12 @@ class HMASettings:
     with the gate at 0.9 it failed on fresh 20200-20700 (293 -> 297 found, 1 -> 2 false, mean IoU
     0.9183 -> 0.8875: a checkerboard cut by the image edge, sym180 0.82, spared on 20500, 0.903 ->
     0.697); learned/weights/default/TRAINING.md.
+    large_lower_scale: on the images the network sees downscaled, one more network pass at this
+    scale (under every one of ``scales``, e.g. 0.25), fused below them, corrects the map the detector
+    returns (:mod:`learned.lower_map`): a kept marker's blob takes that map's extent where it is
+    higher (a large marker's inside, which the 2048-pixel passes leave partly under 0.5), and a blob
+    that yields no marker is cleared where that map does not confirm it. Markers found never change
+    (None: off).
     max_seeds: X-corner
     seeds tried per instance besides the centroid (0 = centroid only). type_by: "model" (the
     classical outline fit at the centre, falling back to shape) or "shape". threads: CPU
@@ -400,6 +407,7 @@ class HMASettings:
     large_clear_flat_below: float = 3.0
     large_spare_reach: float | None = None
     large_spare_max_sym180: float = 0.9
+    large_lower_scale: float | None = None
     max_seeds: int = 3
     type_by: str = "model"
     threads: int | None = None
@@ -469,6 +477,9 @@ class HMASettings:
             raise ValueError("large_clear_rejected_below must be in [0, 1] (or null)")
         if not -1.0 <= self.large_spare_max_sym180 <= 1.0:
             raise ValueError("large_spare_max_sym180 must be in [-1, 1] (a correlation)")
+        if self.large_lower_scale is not None and not 0.0 < self.large_lower_scale < min(self.scales):
+            raise ValueError(f"large_lower_scale must be in (0, {min(self.scales):g}) (under every scale), "
+                             f"or null, got {self.large_lower_scale}")
         if self.large_spare_reach is not None and not self.large_spare_reach > 0:
             raise ValueError("large_spare_reach must be positive (a ratio of X-corner strengths) or null (off)")
         if not 0.0 <= self.large_clear_flat_below <= 255.0:
@@ -784,12 +795,16 @@ class HMADetector:
             return self.large_backend
         return self.backend
 
-    def probability(self, gray: np.ndarray):
+    def probability(self, gray: np.ndarray, lower: bool = False):
+        """The network's map of ``gray`` (:func:`learned.infer.probability_map`); ``lower``: with the
+        map fused one scale further down too, where ``large_lower_scale`` asks for it."""
         from .infer import probability_map
 
         s = self.settings
         h, w = gray.shape[:2]
-        return probability_map(gray, self.backend_for(w, h), self.scales_for(w, h), s.max_side, s.tile, s.overlap)
+        lower_scale = s.large_lower_scale if lower and self.seen_downscaled(w, h) else None
+        return probability_map(gray, self.backend_for(w, h), self.scales_for(w, h), s.max_side, s.tile, s.overlap,
+                               lower_scale)
 
     def detect(self, image: Any) -> DetectionResult:
         t0 = time.perf_counter()
@@ -815,7 +830,7 @@ class HMADetector:
             if seeds_on or s.classical_markers or veto_on else None
         seeds = classical.detections if seeds_on else None
         veto = ClassicalVeto.from_trace(trace, classical.detections) if veto_on else None
-        pm = self.probability(gray)
+        pm = self.probability(gray, lower=True)
         witnesses = classical.detections if s.classical_markers else None
         dets, prob = self._instances(gray, pm.prob, pm.factor, seeds, witnesses, veto)
         colour_found = 0
@@ -830,6 +845,9 @@ class HMADetector:
             prob = keep_blobs_of(mean, prob, s.threshold)
         if s.classical_markers:
             dets, prob = _with_classical_markers(dets, prob, pm.factor, classical, pm.prob, s.classical_min_support)
+        if pm.lower is not None:
+            prob = corrected_by_lower(prob, pm.lower, [_map_pixel(d.x, d.y, pm.factor, prob.shape) for d in dets],
+                                      s.threshold)
         dets.sort(key=lambda d: -d.score)
         return DetectionResult(detections=dets, image_size=(w, h), probability=prob,
                                seconds=time.perf_counter() - t0,

@@ -210,19 +210,34 @@ def fuse_scales(backend: TrunkBackend, x: np.ndarray, scales: Sequence[float]) -
         raise ValueError(f"scales {ss} must include 1.0")
     pred = None
     for s in ss:
-        p, a = backend.trunk(resize_scale_np(x, s))
-        if not np.isfinite(p).all():
-            p = np.nan_to_num(p, nan=0.0, posinf=LOGIT_LIMIT, neginf=-LOGIT_LIMIT)
-        a = np.clip(np.nan_to_num(a, nan=0.5), 0.0, 1.0)
+        if pred is not None and s < 1.0:
+            pred = fuse_lower(backend, x, pred, s)
+            continue
+        p, a = _trunk_at(backend, x, s)
         if pred is None:
             pred = p
-        elif s >= 1.0:
+        else:
             pred = resize_to_np(pred, p.shape[-2:])
             pred = a[None] * p + (1.0 - a[None]) * pred
-        else:
-            hw = pred.shape[-2:]
-            pred = resize_to_np(a[None] * p, hw) + (1.0 - resize_to_np(a, hw)[None]) * pred
     return pred
+
+
+def fuse_lower(backend: TrunkBackend, x: np.ndarray, pred: np.ndarray, s: float) -> np.ndarray:
+    """One more step of the hierarchical fusion: ``pred``, the class logits fused over scales above
+    ``s`` (from :func:`fuse_scales`, at x's size), with a pass at scale ``s`` below them, whose
+    attention weighs its own logits. ``fuse_lower(b, x, fuse_scales(b, x, S), s)`` equals
+    ``fuse_scales(b, x, S + (s,))`` for ``s`` under every scale of S, without running S's passes again."""
+    p, a = _trunk_at(backend, x, s)
+    hw = pred.shape[-2:]
+    return resize_to_np(a[None] * p, hw) + (1.0 - resize_to_np(a, hw)[None]) * pred
+
+
+def _trunk_at(backend: TrunkBackend, x: np.ndarray, s: float) -> tuple[np.ndarray, np.ndarray]:
+    """The trunk's logits and attention for ``x`` rescaled by ``s``, made finite (see :func:`fuse_scales`)."""
+    p, a = backend.trunk(resize_scale_np(x, s))
+    if not np.isfinite(p).all():
+        p = np.nan_to_num(p, nan=0.0, posinf=LOGIT_LIMIT, neginf=-LOGIT_LIMIT)
+    return p, np.clip(np.nan_to_num(a, nan=0.5), 0.0, 1.0)
 
 
 def marker_probability_np(logits: np.ndarray) -> np.ndarray:
@@ -254,10 +269,13 @@ def tiles(length: int, tile: int, overlap: int) -> list[tuple[int, int, int, int
 
 @dataclass(frozen=True)
 class ProbabilityMap:
-    """P(marker) at the processing resolution and the factor f (processing px per image px)."""
+    """P(marker) at the processing resolution and the factor f (processing px per image px);
+    ``lower``: with a ``lower_scale`` asked of :func:`probability_map`, P(marker) fused one scale
+    further down (same grid), else None."""
 
     prob: np.ndarray
     factor: float
+    lower: np.ndarray | None = None
 
 
 def processing_image(gray: np.ndarray, max_side: int | None) -> np.ndarray:
@@ -271,23 +289,33 @@ def processing_image(gray: np.ndarray, max_side: int | None) -> np.ndarray:
 
 
 def probability_map(gray: np.ndarray, backend: TrunkBackend, scales: Sequence[float] = (1.0,),
-                    max_side: int | None = 2048, tile: int = 1024, overlap: int = 64) -> ProbabilityMap:
-    """P(marker) for a gray uint8 (or float [0, 1]) image, downscaled to ``max_side`` and tiled."""
+                    max_side: int | None = 2048, tile: int = 1024, overlap: int = 64,
+                    lower_scale: float | None = None) -> ProbabilityMap:
+    """P(marker) for a gray uint8 (or float [0, 1]) image, downscaled to ``max_side`` and tiled.
+    ``lower_scale`` (under every one of ``scales``): also the map fused with a pass at that scale
+    (:func:`fuse_lower`, one more pass per tile), as :attr:`ProbabilityMap.lower`."""
     if gray.ndim != 2:
         raise ValueError(f"expected a gray (H, W) image, got shape {gray.shape}")
+    if lower_scale is not None and not 0.0 < lower_scale < min(scales):
+        raise ValueError(f"lower_scale must be in (0, {min(scales):g}), got {lower_scale}")
     w = gray.shape[1]
     img = processing_image(gray, max_side)
     x = img.astype(np.float32) / 255.0 if img.dtype == np.uint8 else img.astype(np.float32)
     ph, pw = x.shape
     prob = np.empty((ph, pw), np.float32)
+    lower = np.empty((ph, pw), np.float32) if lower_scale is not None else None
     for y0, y1, ky0, ky1 in tiles(ph, tile, overlap):
         for x0, x1, kx0, kx1 in tiles(pw, tile, overlap):
-            logits = fuse_scales(backend, x[y0:y1, x0:x1], scales)
-            p = marker_probability_np(logits)
-            prob[ky0:ky1, kx0:kx1] = p[ky0 - y0:ky1 - y0, kx0 - x0:kx1 - x0]
-    return ProbabilityMap(np.clip(prob, 0.0, 1.0), pw / float(w))
+            part = x[y0:y1, x0:x1]
+            logits = fuse_scales(backend, part, scales)
+            keep = (slice(ky0 - y0, ky1 - y0), slice(kx0 - x0, kx1 - x0))
+            prob[ky0:ky1, kx0:kx1] = marker_probability_np(logits)[keep]
+            if lower is not None:
+                lower[ky0:ky1, kx0:kx1] = marker_probability_np(fuse_lower(backend, part, logits, lower_scale))[keep]
+    return ProbabilityMap(np.clip(prob, 0.0, 1.0), pw / float(w),
+                          None if lower is None else np.clip(lower, 0.0, 1.0))
 
 
-__all__ = ["TorchBackend", "OpenCVBackend", "open_backend", "fuse_scales", "probability_map", "processing_image",
+__all__ = ["TorchBackend", "OpenCVBackend", "open_backend", "fuse_scales", "fuse_lower", "probability_map", "processing_image",
            "ProbabilityMap",
            "marker_probability_np", "tiles", "resize_scale_np", "resize_to_np", "torch_available"]

@@ -301,6 +301,21 @@ def test_numpy_fusion_equals_the_model_fusion():
         assert np.abs(got - want).max() < 1e-4, scales
 
 
+def test_one_lower_step_equals_fusing_the_lower_scale_with_the_others():
+    from learned.infer import TorchBackend, fuse_lower, fuse_scales
+
+    m = calibrated()
+    x = smooth_images(1, 128, 192, seed=7)[0, 0].numpy()
+    tb = TorchBackend(m)
+    for above, low in (((0.5, 1.0), 0.25), ((1.0,), 0.5), ((0.5, 1.0, 2.0), 0.25)):
+        want = fuse_scales(tb, x, above + (low,))
+        got = fuse_lower(tb, x, fuse_scales(tb, x, above), low)
+        assert got.shape == want.shape
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
+        # and the lower pass changes the fusion (the step is not a no-op)
+        assert np.abs(got - fuse_scales(tb, x, above)).max() > 1e-3
+
+
 def test_onnx_through_opencv_matches_torch_at_two_sizes(tmp_path):
     pytest.importorskip("onnx")
     from learned.export import export_onnx
