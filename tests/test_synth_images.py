@@ -284,3 +284,30 @@ def test_package_data_is_found_without_an_install(monkeypatch):
     fallback = P.data_path("backgrounds")
     assert fallback.resolve() == installed.resolve()
     assert (fallback / "MANIFEST.tsv").is_file() and P.data_path("marker_score.json").is_file()
+
+
+def _segments_cross(p1, p2, p3, p4) -> bool:
+    """Whether segments p1-p2 and p3-p4 cross at a point inside both."""
+    def side(a, b, c):
+        return (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+    return side(p1, p2, p3) * side(p1, p2, p4) < 0 and side(p3, p4, p1) * side(p3, p4, p2) < 0
+
+
+def test_cast_shadows_are_simple_polygons_of_the_corners_drawn():
+    from cpdetect.synth_images import _shadow_polygon
+
+    drawn_crossing = 0
+    for seed in range(400):
+        poly = _shadow_polygon(np.random.default_rng(seed), 160, 120)
+        assert poly.shape == (4, 2)
+        # a bowtie's two opposite edges cross, and its crossing is an X-corner no cast shadow has
+        assert not _segments_cross(poly[0], poly[1], poly[2], poly[3])
+        assert not _segments_cross(poly[1], poly[2], poly[3], poly[0])
+        rng = np.random.default_rng(seed)  # the same draws, in the order drawn
+        if rng.random() >= 0.5:
+            c = rng.uniform([0, 0], [160, 120])
+            drawn = c + rng.uniform(-0.6, 0.6, (4, 2)) * np.array([160, 120])
+            assert sorted(map(tuple, drawn)) == sorted(map(tuple, poly))
+            drawn_crossing += _segments_cross(drawn[0], drawn[1], drawn[2], drawn[3]) or \
+                _segments_cross(drawn[1], drawn[2], drawn[3], drawn[0])
+    assert drawn_crossing > 40  # the draws themselves often cross: the reordering is what keeps them simple
