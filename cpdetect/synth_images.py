@@ -288,10 +288,20 @@ def _shadow_polygon(rng: np.random.Generator, sw: int, sh: int) -> np.ndarray:
     # in the order drawn, nearly half of such quadrilaterals cross themselves: a bowtie, whose two
     # dark triangles meet at a perfect X-corner (in about 4.6 % of images the crossing is in frame), a
     # shadow no flat object casts (the projection of a simple polygon is simple) and one both
-    # detectors took for a marker of a thousand pixels; ordered by angle about their mean, the same
-    # four corners make a simple quadrilateral (the random draws stay as they were: stop 63)
-    mid = poly.mean(axis=0)
-    return poly[np.argsort(np.arctan2(poly[:, 1] - mid[1], poly[:, 0] - mid[0]))]
+    # detectors took for a marker of a thousand pixels (stop 63). A bowtie's corners are in convex
+    # position, so ordered by angle about their mean they make the one simple quadrilateral on them;
+    # the random draws, and every quadrilateral drawn simple, stay as they were
+    if _crosses(poly[0], poly[1], poly[2], poly[3]) or _crosses(poly[1], poly[2], poly[3], poly[0]):
+        mid = poly.mean(axis=0)
+        poly = poly[np.argsort(np.arctan2(poly[:, 1] - mid[1], poly[:, 0] - mid[0]))]
+    return poly
+
+
+def _crosses(p1: np.ndarray, p2: np.ndarray, p3: np.ndarray, p4: np.ndarray) -> bool:
+    """Whether segments p1-p2 and p3-p4 cross at a point inside both."""
+    def side(a, b, c) -> float:
+        return float((b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]))
+    return side(p1, p2, p3) * side(p1, p2, p4) < 0 and side(p3, p4, p1) * side(p3, p4, p2) < 0
 
 
 def _soft_polygon_mask(rng: np.random.Generator, w: int, h: int, scale: int = 4) -> np.ndarray:

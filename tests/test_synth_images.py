@@ -286,14 +286,8 @@ def test_package_data_is_found_without_an_install(monkeypatch):
     assert (fallback / "MANIFEST.tsv").is_file() and P.data_path("marker_score.json").is_file()
 
 
-def _segments_cross(p1, p2, p3, p4) -> bool:
-    """Whether segments p1-p2 and p3-p4 cross at a point inside both."""
-    def side(a, b, c):
-        return (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
-    return side(p1, p2, p3) * side(p1, p2, p4) < 0 and side(p3, p4, p1) * side(p3, p4, p2) < 0
-
-
 def test_cast_shadows_are_simple_polygons_of_the_corners_drawn():
+    from cpdetect.synth_images import _crosses as _segments_cross
     from cpdetect.synth_images import _shadow_polygon
 
     drawn_crossing = 0
@@ -308,6 +302,18 @@ def test_cast_shadows_are_simple_polygons_of_the_corners_drawn():
             c = rng.uniform([0, 0], [160, 120])
             drawn = c + rng.uniform(-0.6, 0.6, (4, 2)) * np.array([160, 120])
             assert sorted(map(tuple, drawn)) == sorted(map(tuple, poly))
-            drawn_crossing += _segments_cross(drawn[0], drawn[1], drawn[2], drawn[3]) or \
+            crossed = _segments_cross(drawn[0], drawn[1], drawn[2], drawn[3]) or \
                 _segments_cross(drawn[1], drawn[2], drawn[3], drawn[0])
+            drawn_crossing += crossed
+            if not crossed:  # a quadrilateral drawn simple is kept as drawn (its images do not change)
+                np.testing.assert_array_equal(poly, drawn)
     assert drawn_crossing > 40  # the draws themselves often cross: the reordering is what keeps them simple
+
+
+def test_segments_cross_only_inside_both():
+    from cpdetect.synth_images import _crosses
+
+    a, b, c, d = (np.array(p, float) for p in ((0, 0), (2, 2), (0, 2), (2, 0)))
+    assert _crosses(a, b, c, d)
+    assert not _crosses(a, c, b, d)  # parallel sides
+    assert not _crosses(a, np.array([0.9, 0.9]), c, d)  # would meet past the first one's end
