@@ -133,9 +133,9 @@ def run(args: argparse.Namespace) -> int:
     net_seconds: list[float] = []
     probability = det.probability
 
-    def timed_probability(gray):
+    def timed_probability(gray, **kw):
         t = time.perf_counter()
-        out = probability(gray)
+        out = probability(gray, **kw)
         net_seconds.append(time.perf_counter() - t)
         return out
 

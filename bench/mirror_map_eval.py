@@ -47,8 +47,8 @@ def main(argv=None) -> int:
     network = det.probability
     last = {}
 
-    def probability(gray):  # the detector's own pass, kept for the mirror step
-        last["pm"] = network(gray)
+    def probability(gray, **kw):  # the detector's own pass, kept for the mirror step
+        last["pm"] = network(gray, **kw)
         return last["pm"]
 
     det.probability = probability
