@@ -90,7 +90,7 @@ def _detector_pair(max_side: int):
     lo[200:240, 180:220] = 0.99  # the lower pass's own blob, touching nothing
     common = dict(scales=(1.0,), small_scales=None, mirror_map="never", max_side=max_side)
     # the processing image is max_side wide: the lower pass (0.5) is narrower
-    plain = HMADetector.with_backend(TwoScaleBackend(hi, lo, min(max_side, 256)), **common)
+    plain = HMADetector.with_backend(TwoScaleBackend(hi, lo, min(max_side, 256)), large_lower_scale=None, **common)
     lower = HMADetector.with_backend(TwoScaleBackend(hi, lo, min(max_side, 256)), large_lower_scale=0.5, **common)
     return img, mask, plain, lower
 
@@ -115,13 +115,22 @@ def test_images_not_seen_downscaled_are_not_touched_by_the_lower_scale():
     assert lower.probability(img, lower=True).lower is None
 
 
-def test_the_lower_scale_must_lie_under_every_scale():
-    with pytest.raises(ValueError, match="large_lower_scale"):
-        HMADetector.with_backend(TwoScaleBackend(np.zeros((4, 4)), np.zeros((4, 4)), 4), large_lower_scale=0.5)
-    with pytest.raises(ValueError, match="large_lower_scale"):
-        HMADetector.with_backend(TwoScaleBackend(np.zeros((4, 4)), np.zeros((4, 4)), 4), scales=(1.0,),
-                                 large_lower_scale=1.0)
-    HMADetector.with_backend(TwoScaleBackend(np.zeros((4, 4)), np.zeros((4, 4)), 4), large_lower_scale=0.25)
+def test_the_lower_scale_is_on_by_default_and_checked():
+    blank = TwoScaleBackend(np.zeros((4, 4)), np.zeros((4, 4)), 4)
+    assert HMADetector.with_backend(blank).settings.large_lower_scale == 0.25
+    for bad in (0.0, 1.0, -0.25):
+        with pytest.raises(ValueError, match="large_lower_scale"):
+            HMADetector.with_backend(blank, large_lower_scale=bad)
     with pytest.raises(ValueError, match="lower_scale"):
-        probability_map(np.zeros((32, 32), np.uint8), TwoScaleBackend(np.zeros((4, 4)), np.zeros((4, 4)), 4),
-                        (0.5, 1.0), lower_scale=0.5)
+        probability_map(np.zeros((32, 32), np.uint8), blank, (0.5, 1.0), lower_scale=0.5)
+
+
+def test_a_lower_scale_the_scales_reach_already_runs_no_pass():
+    img = np.full((256, 256), 128, np.uint8)
+    blank = TwoScaleBackend(np.zeros((4, 4)), np.zeros((4, 4)), 4)
+    # seen downscaled (256 over max_side 128); scales down to 0.25 already: no lower pass, no error
+    det = HMADetector.with_backend(blank, scales=(0.25, 1.0), max_side=128, small_scales=None)
+    assert det.probability(img, lower=True).lower is None
+    det = HMADetector.with_backend(blank, scales=(0.5, 1.0), max_side=128, small_scales=None)
+    assert det.probability(img, lower=True).lower is not None
+    assert det.probability(img).lower is None  # asked for only by detect
