@@ -110,9 +110,13 @@ def _verified_rows_of(folder: str) -> list[dict]:
                              typein=typein[0]))
         return r
 
-    def types_spy(x, y, bounds, widths, pts_by_sector, radius, feats, fallback, trees):
+    def types_spy(x, y, bounds, widths, pts_by_sector, radius, feats, fallback, trees, other=None):
+        # ``other``: the other polarity's fit, kept as the type trees read it (marker_type.type_features)
         typein[0] = dict(x=x, y=y, bounds=np.array(bounds), widths=np.array(widths),
-                         pts_by_sector={k: np.array(v) for k, v in pts_by_sector.items()})
+                         pts_by_sector={k: np.array(v) for k, v in pts_by_sector.items()},
+                         other=None if other is None else dict(
+                             pts_by_sector={k: np.array(v) for k, v in other["pts_by_sector"].items()},
+                             radius=float(other["radius"]), e_rel=float(other["e_rel"])))
         # the rows' type is the residual rule's, whatever type trees are shipped (or none yet)
         return orig_types(x, y, bounds, widths, pts_by_sector, radius, feats, fallback, False)
 

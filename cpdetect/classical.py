@@ -59,7 +59,9 @@ Pipeline for one image:
    do to each shape (train-split: 0.972 -> 0.978 in 5-fold cross-validation on 13,003 candidates);
    since 2026-11-27 on every verified marker, outlines from the checker half-lines included, and on
    the boundary of the polarity that fits its outline clearly better (``TYPE_FIT_RATIO``) where
-   the kept outline fits poorly (``TYPE_FIT_MIN_E_REL``).
+   the kept outline fits poorly (``TYPE_FIT_MIN_E_REL``); since 2026-12-01 the trees also read the
+   other polarity's boundary, fitted for the type only where the scan had not (fresh test-split
+   sets 34000-34300: 33 -> 19 markers typed wrong, the same markers).
    The outline model, from which the score and **radius_px** (outline area) come, keeps the earlier
    rule: the turn between the two straight parts of each sector's boundary (a square's corner ~90
    degrees, a circle's arc ~35, a diagonal's single side ~0), the models' residuals deciding in between.
@@ -620,14 +622,15 @@ def _residuals_of(fits: dict[str, dict[int, tuple]], keep: float = 0.7) -> dict[
 
 
 def _type_of(x: float, y: float, bounds: np.ndarray, widths: np.ndarray, pts_by_sector: dict[int, np.ndarray],
-             radius: float, feats: dict, fallback: str, trees: bool) -> str:
+             radius: float, feats: dict, fallback: str, trees: bool, other: dict | None = None) -> str:
     """The type reported for a verified marker: the type trees' (:mod:`cpdetect.marker_type`) with
     ``trees``, else the type of the smallest :func:`type_residuals`; ``fallback`` (the outline
-    model's type) when the boundary gives no checker-line frame."""
+    model's type) when the boundary gives no checker-line frame. ``other``: the fit of the other
+    polarity's sectors (``pts_by_sector``, ``radius``, ``e_rel``), or None, for the trees."""
     if trees:
         from .marker_type import predict_type, type_features
 
-        f = type_features(x, y, bounds, widths, pts_by_sector, radius, feats)
+        f = type_features(x, y, bounds, widths, pts_by_sector, radius, feats, other)
         return predict_type(f) if f is not None else fallback
     residuals = type_residuals(x, y, bounds, widths, pts_by_sector)
     return min(residuals, key=residuals.get) if residuals else fallback
@@ -1286,16 +1289,18 @@ class _Verifier:
         rough.sort(key=lambda t: -t[0])
         core_r = float(core["radii"][core["core_end"]])
         fits: list = []
-        for strength, pol_dark, b, frac, blended in rough:
+
+        def polarity_fit(pol_dark, b, frac, blended) -> dict | str:
             if frac < 0.75:
-                fits.append("marker boundary not found")
-                continue
+                return "marker boundary not found"
             r0 = float(np.sqrt(np.nanmean(b ** 2)))  # rough: rms boundary distance of one polarity
             if r0 < 0.6 * self.s.min_radius_px or r0 > 1.5 * self.max_radius:
-                fits.append("size out of range")
-                continue
-            fits.append(self._with_outline(self._fit_outline(x, y, core, sec, f, inner, pol_dark, r0, blended), x, y,
-                                           core, core_r))
+                return "size out of range"
+            return self._with_outline(self._fit_outline(x, y, core, sec, f, inner, pol_dark, r0, blended), x, y,
+                                      core, core_r)
+
+        for strength, pol_dark, b, frac, blended in rough:
+            fits.append(polarity_fit(pol_dark, b, frac, blended))
             if isinstance(fits[-1], dict) and fits[-1]["near"] and fits[-1]["radius"] <= 1.2 * core_r \
                     and fits[-1]["e_rel"] < 0.03 and self._size_ok(fits[-1]["radius"]):
                 break  # the pattern's own outline, clearly: the other polarity can only be farther
@@ -1346,9 +1351,21 @@ class _Verifier:
         # typed wrong 12 / 8 / 18 / 6 -> 11 / 7 / 15 / 5, although the trees were fitted on the other
         # outlines only); a candidate the score drops is never reported: the outline's type will do
         frame_type = fit.get("type") or mtype
-        reported = frame_type if score < self.type_min_score else _type_of(
-            x, y, core["bounds"], core["widths"], type_fit["pts_by_sector"], radius, feats, frame_type,
-            self.s.type_trees)
+        reported = frame_type
+        if score >= self.type_min_score:
+            other = None
+            if self.s.type_trees:
+                # the other polarity's boundary, for the trees only (it decides nothing else): where
+                # one polarity's sectors blend into the background, their rays end on a shape that
+                # fits a wrong model, while the other polarity shows the true one
+                other = next((t for t in fits if isinstance(t, dict) and t["pol_dark"] != type_fit["pol_dark"]),
+                             None)
+                if other is None and len(fits) < len(rough):
+                    _, pol_dark, b, frac, blended = rough[len(fits)]
+                    got = polarity_fit(pol_dark, b, frac, blended)
+                    other = got if isinstance(got, dict) else None
+            reported = _type_of(x, y, core["bounds"], core["widths"], type_fit["pts_by_sector"], radius, feats,
+                                frame_type, self.s.type_trees, other)
         dark_share = float(core["widths"][core["dark"]].sum() / TWO_PI)
         return _Verified(x, y, reported, radius, score, outline, (D, B), dark_share)
 

@@ -17,6 +17,7 @@ log-odds is that class's raw score; :class:`ClassEnsembles` predicts the class o
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -129,6 +130,13 @@ def load_tree_ensemble(path: str | Path) -> TreeEnsemble:
         return tree_ensemble_from_dict(json.load(f), str(path))
 
 
+def _json_float(v: float) -> float | str:
+    """``v`` as JSON holds it: an infinite threshold (scikit-learn's split of the samples that have a
+    value from those that miss it) as the string "inf" / "-inf", which float() reads back."""
+    v = float(v)
+    return v if math.isfinite(v) else ("inf" if v > 0 else "-inf")
+
+
 def _trees_doc(predictors: list) -> list[dict]:
     trees = []
     for pred in predictors:
@@ -136,7 +144,7 @@ def _trees_doc(predictors: list) -> list[dict]:
         if nd["is_categorical"].any():
             raise ValueError("categorical splits are not supported")
         trees.append({"feature": nd["feature_idx"].astype(int).tolist(),
-                      "threshold": [float(t) for t in nd["num_threshold"]],
+                      "threshold": [_json_float(t) for t in nd["num_threshold"]],
                       "left": nd["left"].astype(int).tolist(), "right": nd["right"].astype(int).tolist(),
                       "missing_left": nd["missing_go_to_left"].astype(bool).tolist(),
                       "leaf": nd["is_leaf"].astype(bool).tolist(), "value": [float(v) for v in nd["value"]]})

@@ -601,7 +601,7 @@ def test_type_residuals_tell_the_types_apart_in_any_affine_view(mtype):
 @pytest.mark.parametrize("mtype", ["square", "circle", "diagonal"])
 def test_type_trees_tell_the_types_apart_in_any_affine_view(mtype):
     from cpdetect.classical import _type_of
-    from cpdetect.marker_type import TYPE_FEATURES, type_features, type_model
+    from cpdetect.marker_type import OTHER_FEATURES, TYPE_FEATURES, type_features, type_model
 
     assert type_model().features == TYPE_FEATURES
     rng = np.random.default_rng(10 + ["square", "circle", "diagonal"].index(mtype))
@@ -613,17 +613,47 @@ def test_type_trees_tell_the_types_apart_in_any_affine_view(mtype):
         tilt = rng.uniform(0, np.radians(60))
         A = rng.uniform(10, 60) * R(rng.uniform(0, 2 * np.pi)) @ np.diag([1.0, np.cos(tilt)]) @ R(rng.uniform(0, 7))
         bounds, widths, pts = _line_frame_points(mtype, A, centre)
+        _, _, other_pts = _line_frame_points(mtype, A, centre, quadrants=(1, 3))
         radius = float(np.sqrt(abs(np.linalg.det(A)) * {"square": 4.0, "circle": np.pi, "diagonal": 2.0}[mtype] / np.pi))
         noisy = {k: p + rng.normal(0, 0.15, p.shape) for k, p in pts.items()}
         for p in (pts, noisy):
-            f = type_features(*centre, bounds, widths, p, radius, score_feats)
-            assert set(f) == set(TYPE_FEATURES) and np.isfinite([f[k] for k in TYPE_FEATURES]).all()
-            assert _type_of(*centre, bounds, widths, p, radius, score_feats, "square", True) == mtype
+            # with the other polarity's boundary (the same shape) and without it (its features NaN)
+            for other in (dict(pts_by_sector=other_pts, radius=radius, e_rel=0.005), None):
+                f = type_features(*centre, bounds, widths, p, radius, score_feats, other)
+                assert set(f) == set(TYPE_FEATURES)
+                given = [k for k in TYPE_FEATURES if other is not None or k not in OTHER_FEATURES]
+                assert np.isfinite([f[k] for k in given]).all()
+                assert _type_of(*centre, bounds, widths, p, radius, score_feats, "square", True, other) == mtype
             assert _type_of(*centre, bounds, widths, p, radius, score_feats, "square", False) == mtype
     # no sector with five points: the outline model's type stands
     few = {k: p[:4] for k, p in pts.items()}
     assert type_features(*centre, bounds, widths, few, radius, score_feats) is None
     assert _type_of(*centre, bounds, widths, few, radius, score_feats, "circle", True) == "circle"
+
+
+def test_type_features_read_the_other_polarity():
+    # the outline's polarity (sectors 0, 2) ran onto a diagonal's shape, the other one (1, 3) shows
+    # the circle: the other polarity's features say circle, with its point count and size ratio
+    from cpdetect.marker_type import OTHER_FEATURES, TYPE_FEATURES, type_features
+
+    centre = np.array([200.0, 150.0])
+    A = 40.0 * np.array([[0.9, -0.3], [0.25, 0.7]])
+    score_feats = dict(e_rel=0.01, logC=4.5, frac=0.95, widths_min=0.9)
+    bounds, widths, pts = _line_frame_points("diagonal", A, centre, quadrants=(0, 2))
+    bounds_c, _, other_pts = _line_frame_points("circle", 1.1 * A, centre, quadrants=(1, 3), n=20)
+    assert np.allclose(bounds, bounds_c)  # the same checker lines
+    other = dict(pts_by_sector=other_pts, radius=48.0, e_rel=0.004)
+    f = type_features(*centre, bounds, widths, pts, 40.0, score_feats, other)
+    assert set(f) == set(TYPE_FEATURES)
+    assert f["lr_diagonal_0.7"] < min(f["lr_circle_0.7"], f["lr_square_0.7"])
+    assert f["o_lr_circle"] < min(f["o_lr_diagonal"], f["o_lr_square"]) - 5.0
+    assert f["o_n_pts"] == pytest.approx(np.log(40))
+    assert f["o_e_rel"] == 0.004 and f["o_log_r_ratio"] == pytest.approx(np.log(1.2))
+    assert 0.0 <= f["o_ell_res"] < 1e-3  # exact points of an ellipse
+    # no other polarity: those features are missing (NaN), the rest as before
+    g = type_features(*centre, bounds, widths, pts, 40.0, score_feats)
+    assert all(np.isnan(g[k]) for k in OTHER_FEATURES)
+    assert all(g[k] == f[k] for k in TYPE_FEATURES if k not in OTHER_FEATURES)
 
 
 def test_type_trees_setting_switches_the_rule(det):
@@ -937,13 +967,13 @@ def test_a_junction_on_a_found_markers_outline_is_no_marker():
     assert math.hypot(dets[0].x - truth.x, dets[0].y - truth.y) < 0.1
 
 
-def _typed_with(monkeypatch, constant: str, value: float, img: np.ndarray, t) -> list:
+def _typed_with(monkeypatch, constant: str, value: float, img: np.ndarray, t, **settings) -> list:
     """The classical detections within 1 px of the true marker ``t`` with cpdetect.classical's
-    ``constant`` set to ``value``."""
+    ``constant`` set to ``value`` (and the detector's ``settings``)."""
     import cpdetect.classical as C
 
     monkeypatch.setattr(C, constant, value)
-    res = C.ClassicalDetector().detect(img)
+    res = C.ClassicalDetector(**settings).detect(img)
     return [m for m in res.detections if math.hypot(m.x - t.x, m.y - t.y) < 1.0]
 
 
@@ -973,15 +1003,19 @@ def test_a_clean_outline_keeps_its_type_when_the_other_polarity_runs_on(monkeypa
     # to 0.5-0.8 % of its radius; the other polarity's rays run on to a background edge 1.5-2.8 times
     # farther out, where they fit their own model to 0.2-0.3 %, under half of that. Read from there,
     # the type was "circle" and "diagonal"; a kept outline that fits within TYPE_FIT_MIN_E_REL is
-    # now the one read.
+    # now the one read. The type trees also see the other polarity's boundary (since 2026-12-01) and
+    # type the diagonal right without the floor, so which boundary is read is checked under the
+    # residual rule, where only the boundary read decides.
     from cpdetect.classical import TYPE_FIT_MIN_E_REL
 
     img, markers = generated_photo(index, 12500, split="test")
     truth = [m for m in markers if m.type == marker_type]
     assert len(truth) == 1
-    near = _typed_with(monkeypatch, "TYPE_FIT_MIN_E_REL", TYPE_FIT_MIN_E_REL, img, truth[0])
+    trees = _typed_with(monkeypatch, "TYPE_FIT_MIN_E_REL", TYPE_FIT_MIN_E_REL, img, truth[0])
+    assert len(trees) == 1 and trees[0].type == marker_type
+    near = _typed_with(monkeypatch, "TYPE_FIT_MIN_E_REL", TYPE_FIT_MIN_E_REL, img, truth[0], type_trees=False)
     assert len(near) == 1 and near[0].type == marker_type
-    before = _typed_with(monkeypatch, "TYPE_FIT_MIN_E_REL", 0.0, img, truth[0])  # without the floor
+    before = _typed_with(monkeypatch, "TYPE_FIT_MIN_E_REL", 0.0, img, truth[0], type_trees=False)  # no floor
     assert len(before) == 1 and before[0].type != marker_type
     assert near[0].radius_px == before[0].radius_px and near[0].score == before[0].score
 

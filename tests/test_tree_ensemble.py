@@ -37,6 +37,28 @@ def test_export_reproduces_scikit_learn(tmp_path, nan):
     assert ((ens.probability(X) >= 0.5) == clf.predict(X).astype(bool)).all()
 
 
+def test_a_split_on_missing_values_survives_strict_json(tmp_path):
+    # a feature missing for one class: scikit-learn splits "has a value" from "misses it" at an
+    # infinite threshold, which strict JSON (the atomic writer's) cannot hold as a number
+    from sklearn.ensemble import HistGradientBoostingClassifier
+
+    from cpdetect.fileio import write_json_atomic
+
+    rng = np.random.default_rng(5)
+    X = rng.normal(size=(400, 2))
+    y = (rng.random(400) < 0.5).astype(int)
+    X[y == 1, 1] = np.nan
+    clf = HistGradientBoostingClassifier(max_depth=2, max_iter=5, random_state=0).fit(X, y)
+    doc = export_tree_ensemble(clf, ["a", "b"])
+    assert any(t == "inf" for tree in doc["trees"] for t in tree["threshold"])
+    path = tmp_path / "m.json"
+    write_json_atomic(path, doc, indent=None)
+    ens = load_tree_ensemble(path)
+    assert np.isinf(ens.threshold).any()
+    assert np.abs(ens.probability(X) - clf.predict_proba(X)[:, 1]).max() < 1e-12
+    assert ((ens.probability(X) >= 0.5) == y.astype(bool)).all()
+
+
 def test_hand_made_tree_routes_by_threshold_and_missing():
     doc = {"format": FORMAT, "features": ["u"], "baseline": 0.0,
            "trees": [{"feature": [0, 0, 0], "threshold": [1.0, 0.0, 0.0], "left": [1, 0, 0], "right": [2, 0, 0],
