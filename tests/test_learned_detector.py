@@ -657,6 +657,39 @@ def test_images_seen_downscaled_can_take_classical_markers_as_seeds(monkeypatch,
     assert not HMADetector.with_backend(OracleBackend(mask)).settings.large_classical_seeds  # opt-in (stop 60)
 
 
+def test_classical_seeds_can_be_limited_to_sure_classical_markers(monkeypatch):
+    # classical_seed_min_score: a classical marker scored under it is no seed, so it confirms nothing
+    import learned.adapter as adapter
+    from cpdetect.classical import ClassicalDetector
+
+    img, mask, _ = rendered("square", center=(128.0, 128.0), radius=26.0, angle=0.3)
+    score = ClassicalDetector().detect(img).detections[0].score
+    given = []
+
+    def one_blob(self, gray, prob, f, seeds=None, loose=False):
+        given.append(seeds)
+        centre = adapter._Centre(128.02, 127.98, 0.05, "seed", type="square", sym180=0.9, reach=1.0)
+        if seeds:
+            centre = adapter._with_classical(centre, seeds, 26.0)
+        labels = (prob >= 0.5).astype(np.int32)
+        return [adapter.BlobCandidate(1, (0, 0, prob.shape[1], prob.shape[0]), 26.0, 0.95, (128.0, 128.0), centre)], labels
+
+    monkeypatch.setattr(adapter.HMADetector, "candidates", one_blob)
+
+    def found(min_score):
+        det = HMADetector.with_backend(OracleBackend(mask), None, scales=(1.0,), small_scales=None,
+                                       mirror_map="never", max_side=128, large_classical_veto=False,
+                                       large_classical_seeds=True, classical_seed_min_score=min_score)
+        return len(det.detect(img).detections)
+
+    assert 0.5 < score < 1.0
+    assert found(score) == 1 and len(given[-1]) == 1  # at its score: a seed, the blob kept
+    assert found(min(1.0, score + 1e-6)) == 0 and given[-1] == []  # above it: no seed, the blob dropped
+    assert HMADetector.with_backend(OracleBackend(mask)).settings.classical_seed_min_score == 0.0
+    with pytest.raises(ValueError, match="classical_seed_min_score"):
+        HMADetector.with_backend(OracleBackend(mask), classical_seed_min_score=1.5)
+
+
 @pytest.mark.parametrize("on", [False, True])
 def test_a_blob_can_take_the_classical_centre_its_own_choice_missed(monkeypatch, on):
     # the blob's refinement gives a centre 12 px off (as one whose window runs off the frame can); the
