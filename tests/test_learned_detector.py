@@ -628,13 +628,11 @@ def test_large_clear_flat_below_is_grey_levels():
         HMADetector.with_backend(OracleBackend(np.zeros((8, 8), np.uint8)), large_clear_flat_below=-1.0)
 
 
-@pytest.mark.parametrize("max_side,on,kept", [(512, True, 1), (128, False, 0), (128, True, 1)])
-def test_images_seen_downscaled_can_take_classical_markers_as_seeds(monkeypatch, max_side, on, kept):
-    # a centre only a seed gave is dropped on a downscaled image (large_drop_unverified_seeds) unless
-    # the classical detector, given the image, found a marker there too
+def _one_seed_blob(monkeypatch) -> list:
+    """HMADetector.candidates replaced by one sure blob whose centre is a refined seed at (128.02, 127.98),
+    confirmed when a classical seed lies near it; returns the list that collects the seeds it was given."""
     import learned.adapter as adapter
 
-    img, mask, _ = rendered("square", center=(128.0, 128.0), radius=26.0, angle=0.3)
     given = []
 
     def one_blob(self, gray, prob, f, seeds=None, loose=False):
@@ -646,6 +644,15 @@ def test_images_seen_downscaled_can_take_classical_markers_as_seeds(monkeypatch,
         return [adapter.BlobCandidate(1, (0, 0, prob.shape[1], prob.shape[0]), 26.0, 0.95, (128.0, 128.0), centre)], labels
 
     monkeypatch.setattr(adapter.HMADetector, "candidates", one_blob)
+    return given
+
+
+@pytest.mark.parametrize("max_side,on,kept", [(512, True, 1), (128, False, 0), (128, True, 1)])
+def test_images_seen_downscaled_can_take_classical_markers_as_seeds(monkeypatch, max_side, on, kept):
+    # a centre only a seed gave is dropped on a downscaled image (large_drop_unverified_seeds) unless
+    # the classical detector, given the image, found a marker there too
+    img, mask, _ = rendered("square", center=(128.0, 128.0), radius=26.0, angle=0.3)
+    given = _one_seed_blob(monkeypatch)
     det = HMADetector.with_backend(OracleBackend(mask), None, scales=(1.0,), small_scales=None, mirror_map="never",
                                    max_side=max_side, large_classical_veto=False, large_classical_seeds=on)
     res = det.detect(img)
@@ -659,22 +666,11 @@ def test_images_seen_downscaled_can_take_classical_markers_as_seeds(monkeypatch,
 
 def test_classical_seeds_can_be_limited_to_sure_classical_markers(monkeypatch):
     # classical_seed_min_score: a classical marker scored under it is no seed, so it confirms nothing
-    import learned.adapter as adapter
     from cpdetect.classical import ClassicalDetector
 
     img, mask, _ = rendered("square", center=(128.0, 128.0), radius=26.0, angle=0.3)
     score = ClassicalDetector().detect(img).detections[0].score
-    given = []
-
-    def one_blob(self, gray, prob, f, seeds=None, loose=False):
-        given.append(seeds)
-        centre = adapter._Centre(128.02, 127.98, 0.05, "seed", type="square", sym180=0.9, reach=1.0)
-        if seeds:
-            centre = adapter._with_classical(centre, seeds, 26.0)
-        labels = (prob >= 0.5).astype(np.int32)
-        return [adapter.BlobCandidate(1, (0, 0, prob.shape[1], prob.shape[0]), 26.0, 0.95, (128.0, 128.0), centre)], labels
-
-    monkeypatch.setattr(adapter.HMADetector, "candidates", one_blob)
+    given = _one_seed_blob(monkeypatch)
 
     def found(min_score):
         det = HMADetector.with_backend(OracleBackend(mask), None, scales=(1.0,), small_scales=None,
