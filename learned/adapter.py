@@ -13,9 +13,11 @@ Steps for one image (uint8 gray or BGR; a path is read as gray):
    0.795 to 0.850 and the mean centre error from 0.121 to 0.075 px (the centroid is a poor seed under perspective,
    occlusion and at the image border). With ``classical_seeds`` the classical detector's markers on
    the component are tried first, and a blob whose centre one of them confirms is kept (a fresh
-   300-image test-split set: instance F1 0.928 -> 0.934); ``large_classical_seeds`` gives them on
-   images the network sees downscaled only, and with ``classical_centres`` a blob on which one lies
-   takes its centre where the blob's own choice disagrees (both opt-in). With a centre ranker beside the weights
+   300-image test-split set: instance F1 0.928 -> 0.934; opt-in); ``large_classical_seeds`` gives
+   them on images the network sees downscaled only (the default since stop 65, with only the
+   classical markers scored 0.99 or more, ``classical_seed_min_score``), and with ``classical_centres``
+   a blob on which one lies takes its centre where the blob's own choice disagrees (opt-in). With a
+   centre ranker beside the weights
    (``centre_rank.json``, :mod:`learned.centre_choice`) every seed (up to ``rank_seeds``, the most
    point-symmetric of the ``seed_pool`` strongest X-corners) is refined instead, and the candidate
    it scores highest from the refinement's evidence and the symmetry of the image and the blob
@@ -191,11 +193,15 @@ class HMASettings:
     on fresh 17200-17700 (282 -> 284 found, 6 -> 6 false, mean IoU 0.8885 -> 0.8905) but on 16600-17100
     gave 278 -> 280 found, 3 -> 5 false, mean IoU 0.8812 -> 0.8549: on 17000 (0.924 -> 0.790) a
     classical false marker on a large checkerboard's corner became the centre of the network's blob
-    over the board. Over all twelve sets they lower mean IoU (0.8849 -> 0.8727), so they stay opt-in;
+    over the board. Over all twelve sets they lower mean IoU (0.8849 -> 0.8727), so they stayed opt-in;
     learned/weights/default/TRAINING.md. classical_seed_min_score: only the classical markers scored at
-    least this serve as seeds (either setting above, and so for ``classical_centres``); 0 takes them all.
-    On 17000 / 17100, regenerated from their seeds in stop 65, the classical false markers scored
-    0.68-0.975 and 88 of the 96 true ones 0.99 or more. large_clear_flat_below: on the images the
+    least this serve as seeds (either setting above, and so for ``classical_centres``); 0 takes them all
+    (as stop 60 did). On 17000 / 17100, regenerated from their seeds in stop 65, and on 34400 the
+    classical false markers scored 0.68-0.975 and 138 of the 150 true ones 0.99 or more. With 0.99,
+    large_classical_seeds is the default since stop 65, by a rule written before its fresh sets
+    existed (rule 21): on fresh 45 MP sets 34600-35100, 280 -> 283 markers found, no false one either
+    way, mean pixel IoU 0.9017 -> 0.9238 (34600 0.802 -> 0.891, a marker of radius 683 px kept), no
+    set lower, the markers found by both at the same centres. large_clear_flat_below: on the images the
     network sees downscaled, a blob that yields no marker is also cleared from the map, however sure
     the network is of it, when its inside shows one grey tone: :func:`learned.blob_tone.interior_spread` under
     this many grey levels (0 is off). On 36 seen 45 MP sets the blobs that stay in the map without a
@@ -409,8 +415,8 @@ class HMASettings:
     large_drop_unverified_seeds: bool = True
     large_clear_unverified_seeds: bool = True
     large_classical_veto: bool = True
-    large_classical_seeds: bool = False
-    classical_seed_min_score: float = 0.0
+    large_classical_seeds: bool = True
+    classical_seed_min_score: float = 0.99
     classical_centres: bool = False
     large_clear_flat_below: float = 3.0
     large_spare_reach: float | None = None
@@ -835,11 +841,11 @@ class HMADetector:
                                            "network": self._network_for(w, h)})
         downscaled = self.seen_downscaled(w, h)
         veto_on = s.large_classical_veto and downscaled
-        seeds_on = s.classical_seeds or (s.large_classical_seeds and downscaled)
+        seeds_on = self.takes_classical_seeds(w, h)
         trace: list | None = [] if veto_on else None
         classical = self._classical(source, s.classical_markers, trace) \
             if seeds_on or s.classical_markers or veto_on else None
-        seeds = [d for d in classical.detections if d.score >= s.classical_seed_min_score] if seeds_on else None
+        seeds = self.seeds_of(classical.detections) if seeds_on else None
         veto = ClassicalVeto.from_trace(trace, classical.detections) if veto_on else None
         pm = self.probability(gray, lower=True)
         witnesses = classical.detections if s.classical_markers else None
@@ -1089,6 +1095,16 @@ class HMADetector:
             qp = (quad + 0.5) / up - 0.5 - pad + np.array(origin, np.float32)
             quad_img = (qp + 0.5) / f - 0.5
         return checker_phase_type(gray, cx, cy, radius, quad_img)
+
+    def takes_classical_seeds(self, width: int, height: int) -> bool:
+        """Whether the classical detector's markers seed the blobs of an image of this size
+        (``classical_seeds``, or ``large_classical_seeds`` on an image the network sees downscaled)."""
+        s = self.settings
+        return s.classical_seeds or (s.large_classical_seeds and self.seen_downscaled(width, height))
+
+    def seeds_of(self, classical: list[MarkerDetection]) -> list[MarkerDetection]:
+        """The classical markers that serve as seeds: those scored at least ``classical_seed_min_score``."""
+        return [d for d in classical if d.score >= self.settings.classical_seed_min_score]
 
     def _classical(self, image: Any, with_map: bool, trace: list | None = None) -> DetectionResult:
         """The classical detector's result on ``image`` (array or path): seeds for the blobs, markers

@@ -661,7 +661,7 @@ def test_images_seen_downscaled_can_take_classical_markers_as_seeds(monkeypatch,
         assert len(given[0]) == 1 and math.hypot(given[0][0].x - 128.0, given[0][0].y - 128.0) < 0.1
     else:
         assert given[0] is None  # the classical detector is not asked (nothing else needs it here)
-    assert not HMADetector.with_backend(OracleBackend(mask)).settings.large_classical_seeds  # opt-in (stop 60)
+    assert HMADetector.with_backend(OracleBackend(mask)).settings.large_classical_seeds  # the default since stop 65
 
 
 def test_classical_seeds_can_be_limited_to_sure_classical_markers(monkeypatch):
@@ -681,7 +681,7 @@ def test_classical_seeds_can_be_limited_to_sure_classical_markers(monkeypatch):
     assert 0.5 < score < 1.0
     assert found(score) == 1 and len(given[-1]) == 1  # at its score: a seed, the blob kept
     assert found(min(1.0, score + 1e-6)) == 0 and given[-1] == []  # above it: no seed, the blob dropped
-    assert HMADetector.with_backend(OracleBackend(mask)).settings.classical_seed_min_score == 0.0
+    assert HMADetector.with_backend(OracleBackend(mask)).settings.classical_seed_min_score == 0.99  # since stop 65
     with pytest.raises(ValueError, match="classical_seed_min_score"):
         HMADetector.with_backend(OracleBackend(mask), classical_seed_min_score=1.5)
 
