@@ -10,7 +10,8 @@ centre (:meth:`learned.adapter.HMADetector.candidates`):
   its centre is looked for (the last: an unsure blob, see ``unsure_min_symmetry``);
 - ``no centre``: no seed on the blob refines to an acceptable X-corner;
 - ``centre on another corner``: the blob's centre lies beyond the match tolerance of the true one;
-- ``instance model``: the instance model's P is under its cut (and no classical marker confirms it);
+- ``instance model``: the instance model's P is under its cut (and no classical marker confirms it;
+  the classical markers are given as seeds where the detector's settings give them);
 - ``not point-symmetric`` / ``centre reach``: the checks after the instance model;
 - ``kept``: the blob yields a marker there (another blob's marker took it, or it was merged).
 
@@ -97,7 +98,10 @@ def main(argv=None) -> int:
         for rec, item in images_with_misses(ev, ds):
             gray = read_image(ds.image_path(item), gray=True)
             pm = det.probability(gray)
-            blobs, labels = det.candidates(gray, pm.prob, pm.factor)
+            # the classical markers the detector would give the blobs as seeds (large_classical_seeds)
+            seeds = det.seeds_of(det._classical(ds.image_path(item), False).detections) \
+                if det.takes_classical_seeds(gray.shape[1], gray.shape[0]) else None
+            blobs, labels = det.candidates(gray, pm.prob, pm.factor, seeds=seeds)
             for m in rec["missed"]:
                 row = {"file": rec["file"], "x": m["x"], "y": m["y"], **{k: m.get(k) for k in TRUTH_FIELDS}}
                 row.update(stage_of(det, gray, blobs, labels, pm.factor, m))
