@@ -1073,6 +1073,25 @@ def test_marker_without_margin_on_a_wall_of_its_dark_level(det, marker_type):
     assert np.hypot(m.x - center[0], m.y - center[1]) < 0.1
 
 
+def test_marker_without_margin_on_a_dark_wall_inside_a_bright_window_frame(det):
+    # seen 45 MP set 34600, image 7: a square without margin on a dark window whose bright frame lies
+    # 2.6-2.9 radii out puts 11-12 % of the far rings' samples on bright, where a tag's quiet zone or
+    # bright bits put 18 % or more; the tag test's cut of 0.1 had rejected it (rule 23, stop 66)
+    center, angle, radius, shape = (151.4, 138.7), 0.4, 28.0, (290, 320)
+    spec = MarkerSpec("square", size_m=1.0)
+    img = textured_background(shape, 6, mean=32.0, amp=3.0)
+    yy, xx = np.mgrid[:shape[0], :shape[1]]
+    ring = np.maximum(abs(xx - center[0]), abs(yy - center[1])) / radius
+    img[(ring >= 2.6) & (ring < 2.9)] = 200.0
+    render_marker(spec, frontal_homography(center, radius, angle, spec), shape).composite(img, 32.0, 210.0)
+    img = np.clip(img + np.random.default_rng(6).normal(0, 1.5, shape) + 0.5, 0, 255).astype(np.uint8)
+    res = det.detect(img)
+    assert len(res.detections) == 1
+    m = res.detections[0]
+    assert m.type == "square"
+    assert np.hypot(m.x - center[0], m.y - center[1]) < 0.1
+
+
 def found_near(img, truth, monkeypatch=None):
     """The classical detections within 3 px of ``truth``; given ``monkeypatch``, with the tests that
     the score weighs too rejecting outright (``strict_tests``, as before 2026-11-27)."""
