@@ -1053,20 +1053,27 @@ def test_outline_from_the_checker_lines_is_typed_by_the_trees():
     assert abs(near[0].radius_px / t.radius_px - 1.0) < 0.1
 
 
+def _marker_on_a_dark_wall(marker_type, center, shape, frame=None, radius=28.0, angle=0.4):
+    """A marker without margin (levels 32 / 210) on a textured wall of its dark level, with noise;
+    ``frame`` (inner, outer), in radii: a bright square frame around it, as a window's."""
+    spec = MarkerSpec(marker_type, size_m=1.0)
+    img = textured_background(shape, 6, mean=32.0, amp=3.0)
+    if frame is not None:
+        yy, xx = np.mgrid[:shape[0], :shape[1]]
+        ring = np.maximum(abs(xx - center[0]), abs(yy - center[1])) / radius
+        img[(ring >= frame[0]) & (ring < frame[1])] = 200.0
+    render_marker(spec, frontal_homography(center, radius, angle, spec), shape).composite(img, 32.0, 210.0)
+    return np.clip(img + np.random.default_rng(6).normal(0, 1.5, shape) + 0.5, 0, 255).astype(np.uint8)
+
+
 @pytest.mark.parametrize("marker_type", ["circle", "diagonal", "square"])
 def test_marker_without_margin_on_a_wall_of_its_dark_level(det, marker_type):
     # its dark sectors merge with the wall: the bright ones lie in a dark field all around, as a tag's
     # bright bit cells do; but bit cells are squares, and quarter discs or triangles are not, and a
     # tag's quiet zone or other bits lie within two cells, where the wall stays dark (the square was
     # rejected as a tag's bits before 2026-11-27)
-    from cpdetect.markers import frontal_homography
-
-    center, angle, radius, shape = (131.4, 108.7), 0.4, 28.0, (230, 260)
-    spec = MarkerSpec(marker_type, size_m=1.0)
-    img = textured_background(shape, 6, mean=32.0, amp=3.0)
-    render_marker(spec, frontal_homography(center, radius, angle, spec), shape).composite(img, 32.0, 210.0)
-    img = np.clip(img + np.random.default_rng(6).normal(0, 1.5, shape) + 0.5, 0, 255).astype(np.uint8)
-    res = det.detect(img)
+    center = (131.4, 108.7)
+    res = det.detect(_marker_on_a_dark_wall(marker_type, center, (230, 260)))
     assert len(res.detections) == 1
     m = res.detections[0]
     assert m.type == marker_type
@@ -1077,15 +1084,8 @@ def test_marker_without_margin_on_a_dark_wall_inside_a_bright_window_frame(det):
     # seen 45 MP set 34600, image 7: a square without margin on a dark window whose bright frame lies
     # 2.6-2.9 radii out puts 11-12 % of the far rings' samples on bright, where a tag's quiet zone or
     # bright bits put 18 % or more; the tag test's cut of 0.1 had rejected it (rule 23, stop 66)
-    center, angle, radius, shape = (151.4, 138.7), 0.4, 28.0, (290, 320)
-    spec = MarkerSpec("square", size_m=1.0)
-    img = textured_background(shape, 6, mean=32.0, amp=3.0)
-    yy, xx = np.mgrid[:shape[0], :shape[1]]
-    ring = np.maximum(abs(xx - center[0]), abs(yy - center[1])) / radius
-    img[(ring >= 2.6) & (ring < 2.9)] = 200.0
-    render_marker(spec, frontal_homography(center, radius, angle, spec), shape).composite(img, 32.0, 210.0)
-    img = np.clip(img + np.random.default_rng(6).normal(0, 1.5, shape) + 0.5, 0, 255).astype(np.uint8)
-    res = det.detect(img)
+    center = (151.4, 138.7)
+    res = det.detect(_marker_on_a_dark_wall("square", center, (290, 320), frame=(2.6, 2.9)))
     assert len(res.detections) == 1
     m = res.detections[0]
     assert m.type == "square"
