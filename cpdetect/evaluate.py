@@ -215,13 +215,16 @@ def centre_visible_summary(records: Sequence[dict]) -> dict:
     """Marker recall and centre error without the markers whose aiming point an occluder hides
     (truth field ``centre_hidden``, written by the generator): nothing in the image locates such a
     marker's centre, so it is left out of both counts here (a detection matched to one was no false
-    positive either). ``{"markers", "tp", "fn", "recall", "hidden", "centre_error_px"}``; ``hidden``
-    counts the markers left out. Markers without the field count as visible."""
+    positive either). ``{"markers", "tp", "fn", "recall", "f1", "hidden", "centre_error_px"}``;
+    ``f1`` weighs those markers against every false positive; ``hidden`` counts the markers left out.
+    Markers without the field count as visible."""
     dist = np.array([m["distance"] for r in records for m in r["matches"] if not centre_hidden(m)], float)
     missed = sum(1 for r in records for m in r["missed"] if not centre_hidden(m))
     everyone = sum(len(r["matches"]) + len(r["missed"]) for r in records)
+    false = sum(len(r["false_positives"]) for r in records)
     tp = int(dist.size)
     return {"markers": tp + missed, "tp": tp, "fn": missed, "recall": _ratio(tp, tp + missed),
+            "f1": _ratio(2 * tp, 2 * tp + false + missed),
             "hidden": everyone - tp - missed, "centre_error_px": _error_stats(dist)}
 
 
@@ -314,8 +317,8 @@ def format_table(metrics: dict) -> str:
     cv = metrics.get("centre_visible")
     if cv and cv.get("hidden"):
         ce = cv["centre_error_px"]
-        lines.append(f"           recall {f(cv['recall'])} of the {cv['markers']} markers whose centre is visible "
-                     f"({cv['hidden']} hidden by an occluder); their centre mean {f(ce['mean'])} px, "
+        lines.append(f"           recall {f(cv['recall'])} (f1 {f(cv.get('f1'))}) of the {cv['markers']} markers whose "
+                     f"centre is visible ({cv['hidden']} hidden by an occluder); their centre mean {f(ce['mean'])} px, "
                      f"p95 {f(ce['p95'])} px")
     lines += [
         f"centre     mean {f(e['mean'])} px   median {f(e['median'])} px   p95 {f(e['p95'])} px"

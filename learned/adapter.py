@@ -102,6 +102,9 @@ def _shipped_folder(network: str) -> Path:
     return default_model_dir(network)
 
 
+# a classical marker under the seeds' score cut confirms a seed-kind centre only this close to it (image
+# pixels): both come from cpdetect.refine.refine_center on the same pixels (large_seed_confirm_min_score)
+SEED_CONFIRM_PX = 1.5
 MAX_SCALE = 4.0  # the largest inference scale: twice the paper's largest (2.0)
 
 
@@ -201,7 +204,16 @@ class HMASettings:
     large_classical_seeds is the default since stop 65, by a rule written before its fresh sets
     existed (rule 21): on fresh 45 MP sets 34600-35100, 280 -> 283 markers found, no false one either
     way, mean pixel IoU 0.9017 -> 0.9238 (34600 0.802 -> 0.891, a marker of radius 683 px kept), no
-    set lower, the markers found by both at the same centres. large_clear_flat_below: on the images the
+    set lower, the markers found by both at the same centres. large_seed_confirm_min_score: on the
+    images the network sees downscaled, a classical marker scored at least this (and under
+    ``classical_seed_min_score``) within ``SEED_CONFIRM_PX`` of a blob's seed-kind centre confirms it,
+    so that ``large_drop_unverified_seeds`` / ``large_clear_unverified_seeds`` spare it; it seeds
+    nothing and overrides neither the instance model nor any centre (None: off). Opt-in (stop 67):
+    at 0.95, on seen 45 MP set 36100 it keeps a square of radius 400 px whose seed centre is 0.007 px
+    off, confirmed at score 0.968 (pixel IoU 0.903 -> 0.938), but on regenerated 17100 a tag's
+    bit-cell corner the classical detector keeps at 0.975 (IoU 0.895 -> 0.861, one false marker more),
+    so rule 25 stopped at its seen check; learned/weights/default/TRAINING.md.
+    large_clear_flat_below: on the images the
     network sees downscaled, a blob that yields no marker is also cleared from the map, however sure
     the network is of it, when its inside shows one grey tone: :func:`learned.blob_tone.interior_spread` under
     this many grey levels (0 is off). On 36 seen 45 MP sets the blobs that stay in the map without a
@@ -417,6 +429,7 @@ class HMASettings:
     large_classical_veto: bool = True
     large_classical_seeds: bool = True
     classical_seed_min_score: float = 0.99
+    large_seed_confirm_min_score: float | None = None
     classical_centres: bool = False
     large_clear_flat_below: float = 3.0
     large_spare_reach: float | None = None
@@ -479,6 +492,8 @@ class HMASettings:
             raise ValueError("rank_stop_model must be in [0, 1]")
         if not 0.0 <= self.classical_seed_min_score <= 1.0:
             raise ValueError("classical_seed_min_score must be in [0, 1]")
+        if self.large_seed_confirm_min_score is not None and not 0.0 <= self.large_seed_confirm_min_score <= 1.0:
+            raise ValueError("large_seed_confirm_min_score must be in [0, 1] (or null: off)")
         if not 0.0 < self.threshold < 1.0:
             raise ValueError("threshold must be in (0, 1)")
         if self.max_side is not None and self.max_side < 64:
@@ -849,7 +864,8 @@ class HMADetector:
         veto = ClassicalVeto.from_trace(trace, classical.detections) if veto_on else None
         pm = self.probability(gray, lower=True)
         witnesses = classical.detections if s.classical_markers else None
-        dets, prob = self._instances(gray, pm.prob, pm.factor, seeds, witnesses, veto)
+        confirmers = self.seed_confirmers_of(classical.detections, w, h) if classical is not None else None
+        dets, prob = self._instances(gray, pm.prob, pm.factor, seeds, witnesses, veto, confirmers)
         colour_found = 0
         if self.colour_centres_for(w, h):
             n0 = len(dets)
@@ -981,7 +997,8 @@ class HMADetector:
     def _instances(self, gray: np.ndarray, prob: np.ndarray, f: float,
                    seeds: list[MarkerDetection] | None = None,
                    witnesses: list[MarkerDetection] | None = None,
-                   veto: "ClassicalVeto | None" = None) -> tuple[list[MarkerDetection], np.ndarray]:
+                   veto: "ClassicalVeto | None" = None,
+                   confirmers: list[MarkerDetection] | None = None) -> tuple[list[MarkerDetection], np.ndarray]:
         """The marker instances, and the probability map with the rejected blobs cleared (unless the
         network is sure of them, ``clear_rejected_below``, and, when ``witnesses`` is given, one of
         those markers lies on the blob); ``veto``: the classical detector's say (``large_classical_veto``),
@@ -1010,7 +1027,8 @@ class HMADetector:
             # confirming it: on images seen downscaled mostly checkerboard and shadow corners, whatever the
             # network's confidence (large_drop_unverified_seeds drops it, large_clear_unverified_seeds
             # clears its blob)
-            seed_only = b.centre is not None and b.centre.kind == "seed" and not b.centre.classical
+            seed_only = b.centre is not None and b.centre.kind == "seed" and not b.centre.classical \
+                and not (confirmers and _near_one(b.centre, confirmers, SEED_CONFIRM_PX))
             cx, cy = b.centroid
             score = float(np.clip(b.mean_p, 0.0, 1.0))
             sigma = max(0.5, 0.25 * b.radius)
@@ -1101,6 +1119,17 @@ class HMADetector:
         (``classical_seeds``, or ``large_classical_seeds`` on an image the network sees downscaled)."""
         s = self.settings
         return s.classical_seeds or (s.large_classical_seeds and self.seen_downscaled(width, height))
+
+    def seed_confirmers_of(self, classical: list[MarkerDetection], width: int, height: int
+                           ) -> list[MarkerDetection] | None:
+        """The classical markers that, on an image the network sees downscaled, only confirm a blob's
+        seed-kind centre (``large_seed_confirm_min_score``: scored at least this and under
+        ``classical_seed_min_score``), sparing it ``large_drop_unverified_seeds`` and
+        ``large_clear_unverified_seeds``; None when off or the image is seen whole."""
+        s = self.settings
+        if s.large_seed_confirm_min_score is None or not self.seen_downscaled(width, height):
+            return None
+        return [d for d in classical if s.large_seed_confirm_min_score <= d.score < s.classical_seed_min_score]
 
     def seeds_of(self, classical: list[MarkerDetection]) -> list[MarkerDetection]:
         """The classical markers that serve as seeds: those scored at least ``classical_seed_min_score``."""
@@ -1352,6 +1381,11 @@ def _with_classical(c: _Centre, found: list[MarkerDetection], radius: float) -> 
     if math.hypot(c.x - best.x, c.y - best.y) > near:
         return c
     return dataclasses.replace(c, classical=True)
+
+
+def _near_one(c: _Centre, found: list[MarkerDetection], near: float) -> bool:
+    """Whether one of the markers ``found`` lies within ``near`` pixels of centre ``c``."""
+    return any(math.hypot(c.x - d.x, c.y - d.y) <= near for d in found)
 
 
 def _solidity(comp: np.ndarray, area: int) -> float:

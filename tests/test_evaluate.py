@@ -68,6 +68,7 @@ def test_markers_with_a_hidden_centre_are_left_out_of_the_centre_visible_recall(
     cv = s["centre_visible"]
     assert (cv["markers"], cv["tp"], cv["fn"], cv["hidden"]) == (3, 2, 1, 2)
     assert math.isclose(cv["recall"], 2 / 3)
+    assert math.isclose(cv["f1"], 2 * 2 / (2 * 2 + 1 + 1))  # the false one counts; the hidden found one does not
     # the hidden marker found 1 px off is left out of the centre error too
     assert math.isclose(s["centre_error_px"]["mean"], (0.5 + 0.5 + 1.0) / 3)
     assert math.isclose(cv["centre_error_px"]["mean"], 0.5)

@@ -628,8 +628,8 @@ def test_large_clear_flat_below_is_grey_levels():
         HMADetector.with_backend(OracleBackend(np.zeros((8, 8), np.uint8)), large_clear_flat_below=-1.0)
 
 
-def _one_seed_blob(monkeypatch) -> list:
-    """HMADetector.candidates replaced by one sure blob whose centre is a refined seed at (128.02, 127.98),
+def _one_seed_blob(monkeypatch, at: tuple[float, float] = (128.02, 127.98)) -> list:
+    """HMADetector.candidates replaced by one sure blob whose centre is a refined seed at ``at``,
     confirmed when a classical seed lies near it; returns the list that collects the seeds it was given."""
     import learned.adapter as adapter
 
@@ -637,7 +637,7 @@ def _one_seed_blob(monkeypatch) -> list:
 
     def one_blob(self, gray, prob, f, seeds=None, loose=False):
         given.append(seeds)
-        centre = adapter._Centre(128.02, 127.98, 0.05, "seed", type="square", sym180=0.9, reach=1.0)
+        centre = adapter._Centre(at[0], at[1], 0.05, "seed", type="square", sym180=0.9, reach=1.0)
         if seeds:
             centre = adapter._with_classical(centre, seeds, 26.0)
         labels = (prob >= 0.5).astype(np.int32)
@@ -684,6 +684,41 @@ def test_classical_seeds_can_be_limited_to_sure_classical_markers(monkeypatch):
     assert HMADetector.with_backend(OracleBackend(mask)).settings.classical_seed_min_score == 0.99  # since stop 65
     with pytest.raises(ValueError, match="classical_seed_min_score"):
         HMADetector.with_backend(OracleBackend(mask), classical_seed_min_score=1.5)
+
+
+@pytest.mark.parametrize("max_side,offset,confirm_above,kept", [
+    (128, 0.0, 0.0, 1),      # a classical marker under the seeds' cut confirms the seed centre
+    (128, 1.4, 0.0, 1),      # within 1.5 px
+    (128, 1.7, 0.0, 0),      # not farther
+    (128, 0.0, 1e-6, 0),     # scored under large_seed_confirm_min_score: no say
+    (128, 0.0, None, 0),     # the setting off
+    (512, 0.0, None, 1),     # an image seen whole: no seed-only centre is dropped
+])
+def test_a_classical_marker_under_the_seed_cut_can_confirm_a_seed_centre(monkeypatch, max_side, offset,
+                                                                         confirm_above, kept):
+    # large_seed_confirm_min_score (rule 25, stop 67): on 45 MP set 36100 a marker of radius 400 px whose
+    # seed centre the classical detector confirmed at score 0.968, under the seeds' cut, was dropped as a
+    # centre nothing confirmed; the confirmation spares it that rule and nothing else
+    from cpdetect.classical import ClassicalDetector
+
+    img, mask, _ = rendered("square", center=(128.0, 128.0), radius=26.0, angle=0.3)
+    found_at = ClassicalDetector().detect(img).detections[0]
+    given = _one_seed_blob(monkeypatch, at=(found_at.x + offset, found_at.y))
+    det = HMADetector.with_backend(
+        OracleBackend(mask), None, scales=(1.0,), small_scales=None, mirror_map="never", max_side=max_side,
+        large_classical_veto=False, large_classical_seeds=True, classical_seed_min_score=1.0,
+        large_seed_confirm_min_score=None if confirm_above is None else min(1.0, found_at.score + confirm_above))
+    res = det.detect(img)
+    assert 0.5 < found_at.score < 1.0
+    assert given[-1] in ([], None)  # never a seed: scored under classical_seed_min_score
+    assert len(res.detections) == kept and (res.probability.max() >= 0.5) == bool(kept)
+
+
+def test_large_seed_confirm_min_score_is_a_score_or_off():
+    mask = np.zeros((8, 8), np.uint8)
+    assert HMADetector.with_backend(OracleBackend(mask)).settings.large_seed_confirm_min_score is None
+    with pytest.raises(ValueError, match="large_seed_confirm_min_score"):
+        HMADetector.with_backend(OracleBackend(mask), large_seed_confirm_min_score=1.2)
 
 
 @pytest.mark.parametrize("on", [False, True])
