@@ -1001,7 +1001,9 @@ class HMADetector:
                    confirmers: list[MarkerDetection] | None = None) -> tuple[list[MarkerDetection], np.ndarray]:
         """The marker instances, and the probability map with the rejected blobs cleared (unless the
         network is sure of them, ``clear_rejected_below``, and, when ``witnesses`` is given, one of
-        those markers lies on the blob); ``veto``: the classical detector's say (``large_classical_veto``),
+        those markers lies on the blob); ``confirmers``: classical markers that spare a seed-kind centre
+        near them the two seed rules below (:meth:`seed_confirmers_of`); ``veto``: the classical detector's
+        say (``large_classical_veto``),
         whose vetoed blobs are cleared too. On images seen downscaled, sure blobs are cleared as well
         when their centre is a seed nothing confirmed (``large_clear_unverified_seeds``) or their inside
         shows one grey tone (``large_clear_flat_below``)."""
@@ -1376,9 +1378,7 @@ def _with_classical(c: _Centre, found: list[MarkerDetection], radius: float) -> 
     """``c`` marked as confirmed by the classical detector when one of its markers (``found``) lies
     within max(1.5 px, a tenth of the blob radius) of it: both centres come from
     :func:`cpdetect.refine.refine_center` on the same pixels, so a confirmed one agrees closely."""
-    near = max(1.5, 0.1 * radius)
-    best = min(found, key=lambda d: math.hypot(c.x - d.x, c.y - d.y))
-    if math.hypot(c.x - best.x, c.y - best.y) > near:
+    if not _near_one(c, found, max(1.5, 0.1 * radius)):
         return c
     return dataclasses.replace(c, classical=True)
 
