@@ -267,26 +267,39 @@ def recall_by(records: Sequence[dict], key: str, edges: Sequence[float] | None =
 
 
 def evaluate(dataset: Dataset, detector: Any, limit: int | None = None,
-             progress: Callable[[int, int], None] | None = None) -> dict:
+             progress: Callable[[int, int], None] | None = None, from_file: bool | None = None) -> dict:
     """Run ``detector`` on every image of ``dataset`` (the first ``limit`` when given) and score it.
 
     Returns a JSON-safe dict: the summary keys of :func:`summarize` (NaN written as None) plus
-    ``"dataset"`` (its root) and ``"per_image"`` (one :func:`score_image` per image). Images are
-    decoded with :func:`cpdetect.imageio.read_image` (BGR uint8); only ``detector.detect`` is timed.
+    ``"dataset"`` (its root), ``"input"`` ("file" or "array") and ``"per_image"`` (one
+    :func:`score_image` per image). ``from_file``: give the detector the image's path, as ``cpdetect
+    detect`` does for a detector with ``accepts_path`` (the classical one decodes a large JPEG at
+    reduced size for its search, which finds slightly different candidates than the area-reduced
+    array does); the timing then includes the decode. False: decode with
+    :func:`cpdetect.imageio.read_image` (BGR uint8) and time only ``detector.detect``. None (default):
+    the path exactly where ``cpdetect detect`` would pass it.
     Raises :class:`~cpdetect.errors.InputError` naming the file for an unreadable image or mask.
     """
-    from .imageio import read_image
+    from .imageio import probe_image, read_image
 
     items = dataset.images if limit is None else dataset.images[:max(int(limit), 0)]
+    if from_file is None:
+        from_file = bool(getattr(detector, "accepts_path", False))
     pixel = PixelCounts()
     records = []
     name = str(getattr(detector, "name", type(detector).__name__))
     for k, item in enumerate(items):
         path = dataset.image_path(item)
-        image = read_image(path)
-        h, w = image.shape[:2]
-        t0 = time.perf_counter()
-        result: DetectionResult = detector.detect(image)
+        if from_file:
+            info = probe_image(path)
+            w, h = info.width, info.height
+            t0 = time.perf_counter()
+            result: DetectionResult = detector.detect(path)
+        else:
+            image = read_image(path)
+            h, w = image.shape[:2]
+            t0 = time.perf_counter()
+            result = detector.detect(image)
         seconds = time.perf_counter() - t0
         if tuple(result.image_size) != (w, h):
             raise ValueError(f"detector {name!r} reported image size {result.image_size} for a {w}x{h} image")
@@ -298,6 +311,7 @@ def evaluate(dataset: Dataset, detector: Any, limit: int | None = None,
             progress(k + 1, len(items))
     out = summarize(records, pixel, detector=name)
     out["dataset"] = str(dataset.root)
+    out["input"] = "file" if from_file else "array"
     out["per_image"] = records
     return _json_safe(out)
 

@@ -2,6 +2,8 @@
 import hashlib
 import json
 import math
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -178,6 +180,42 @@ def test_offset_oracle_has_the_known_error(dataset):
     small = sum(1 for im in dataset.images for t in im.markers if t.radius_px < 14)
     large = sum(1 for im in dataset.images for t in im.markers if t.radius_px >= 14)
     assert m["fn"] == small and m["tp"] == large and m["fp"] == small
+
+
+def test_a_detector_that_reads_files_gets_the_path_as_in_detect(dataset, monkeypatch, tmp_path):
+    oracle = _oracle_factory(dataset)
+
+    class FileOracle(oracle):
+        accepts_path = True
+        seen: list = []
+
+        def detect(self, image):
+            FileOracle.seen.append(type(image).__name__)
+            return super().detect(read_image(image) if isinstance(image, (str, Path)) else image)
+
+    m = evaluate(dataset, FileOracle(with_map=False))
+    assert m["input"] == "file" and set(FileOracle.seen) == {"PosixPath"} and len(FileOracle.seen) == 6
+    assert m["recall"] == 1.0 and all(r["width"] == 320 and r["height"] == 240 for r in m["per_image"])
+    FileOracle.seen.clear()
+    m = evaluate(dataset, FileOracle(with_map=False), from_file=False)
+    assert m["input"] == "array" and set(FileOracle.seen) == {"ndarray"} and m["recall"] == 1.0
+    assert evaluate(dataset, oracle(with_map=False), limit=1)["input"] == "array"
+    # the CLI's --from-array
+    monkeypatch.setitem(registry._REGISTERED, "file-oracle", FileOracle)
+    out = tmp_path / "m.json"
+    FileOracle.seen.clear()
+    assert main(["eval", str(dataset.root), "--detector", "file-oracle", "--limit", "2", "--from-array",
+                 "--out", str(out)]) == 0
+    assert json.loads(out.read_text())["input"] == "array" and FileOracle.seen == ["ndarray", "ndarray"]
+    # an unreadable image is named, whichever input the detector gets
+    bad = tmp_path / "bad"
+    shutil.copytree(dataset.root, bad)
+    first = sorted((bad / "images").iterdir())[0]
+    first.write_bytes(b"not a jpeg at all")
+    from cpdetect.errors import InputError
+    for ff in (True, False):
+        with pytest.raises(InputError, match=first.name):
+            evaluate(load_dataset(bad), FileOracle(with_map=False), from_file=ff)
 
 
 def test_limit_and_json_safety(dataset):
