@@ -252,6 +252,11 @@ class ClassicalSettings:
         worse, and fewer false markers with the 45 MP set 12400 that showed the case): every figure of
         the four fresh sets stayed the same, and 12400 went from 4 to 2 false markers (the two
         corners of a shaded checkerboard).
+    saddle_distinct_frac: with a value, the single-saddle test tries eight distinct corners: near
+        candidates within this fraction of the verified radius of one tried already are tried as
+        well but take no slot of their own (:func:`saddle_neighbours`), so that one corner found on
+        four pyramid levels takes one of the eight slots, not four. None (default): the first eight
+        candidates, copies or not.
     saddle_ring_min_px: the single-saddle test's four small rings start at max(this, 0.15 radius)
         pixels around each neighbour (and around the centre, for its axes). Under 1-2 px of blur,
         rings from 1.5 px see a small checkerboard's corners with sector means short of the levels its
@@ -290,6 +295,7 @@ class ClassicalSettings:
     robust_ellipse: bool = False
     saddle_order: str = "alike"
     saddle_ring_min_px: float = 3.0
+    saddle_distinct_frac: float | None = None
 
     def __post_init__(self) -> None:
         if not self.min_radius_px > 0:
@@ -328,6 +334,8 @@ class ClassicalSettings:
             raise ValueError("robust_ellipse needs outline_r0_ratio (the refit is kept only where it agrees)")
         if not 1.0 <= self.saddle_ring_min_px <= 8.0:
             raise ValueError("saddle_ring_min_px must be in [1, 8] (pixels)")
+        if self.saddle_distinct_frac is not None and not 0.0 < self.saddle_distinct_frac <= 0.5:
+            raise ValueError("saddle_distinct_frac must be in (0, 0.5] (of the radius) or null (off)")
         if self.saddle_order not in SADDLE_ORDERS:
             raise ValueError(f"saddle_order must be one of {', '.join(SADDLE_ORDERS)}, got {self.saddle_order!r}")
         if not 0.0 <= self.outline_window <= 2.0:
@@ -1999,7 +2007,8 @@ class _Scan:
             # of its sector edges with its outline (three regions) its centre shows as a neighbour
             found = [a for a, _ in accepted if 0.4 * v.radius < math.hypot(a.x - v.x, a.y - v.y) < 1.7 * v.radius]
             if any(verifier.is_xcorner(cand_xy[j, 0], cand_xy[j, 1], r_small, v.levels, axes=axes)
-                   for j in saddle_neighbours(near, cand_c, c.contrast, s.saddle_order)) \
+                   for j in saddle_neighbours(near, cand_c, c.contrast, s.saddle_order, cand_xy,
+                                              (s.saddle_distinct_frac or 0.0) * v.radius)) \
                     or any(verifier.is_xcorner(a.x, a.y, r_small, v.levels) for a in found):
                 mark(ci, "single saddle", v)
                 rejected += 1
@@ -2046,17 +2055,38 @@ class _Scan:
         return rejected
 
 
-def saddle_neighbours(near: np.ndarray, contrast: np.ndarray, own: float, order: str) -> np.ndarray:
+def saddle_neighbours(near: np.ndarray, contrast: np.ndarray, own: float, order: str,
+                      xy: np.ndarray | None = None, min_apart_px: float = 0.0) -> np.ndarray:
     """The indices ``near`` (into ``contrast``, the candidates' c_hat) that the single-saddle test
     tries, at most SADDLE_NEIGHBOURS: the strongest first ("strongest"), or those whose contrast is
     most like ``own`` first ("alike": |log(c / own)|, ties by strength). Corners of one checker
     under one light have one contrast; a shadow over part of a checkerboard makes its sunlit corners
-    the strongest, and those fail the level comparison with a candidate in the shade."""
+    the strongest, and those fail the level comparison with a candidate in the shade.
+
+    With ``xy`` (the candidates' positions, pixels) and ``min_apart_px`` > 0, the cap counts
+    distinct corners instead: a candidate within ``min_apart_px`` of the first of a group taken
+    already joins that group, and every member of the first SADDLE_NEIGHBOURS groups is returned
+    (in the same order; a superset of the capped list). One corner found on four pyramid levels is
+    one corner: four copies of a board's outer corner (three cells, no X) had filled half the slots
+    while the board's inner corners went untried; the copies stay, since rings around one copy can
+    pass where those around another, a pixel away, do not."""
     c = contrast[near]
     if order == "alike":
         keys = (-c, np.abs(np.log(np.maximum(c, 1e-6) / max(own, 1e-6))))
-        return near[np.lexsort(keys)][:SADDLE_NEIGHBOURS]
-    return near[np.argsort(-c)][:SADDLE_NEIGHBOURS]
+        ordered = near[np.lexsort(keys)]
+    else:
+        ordered = near[np.argsort(-c)]
+    if xy is None or min_apart_px <= 0:
+        return ordered[:SADDLE_NEIGHBOURS]
+    heads: list[int] = []
+    out: list[int] = []
+    for j in ordered:
+        if any(math.hypot(xy[j, 0] - xy[t, 0], xy[j, 1] - xy[t, 1]) <= min_apart_px for t in heads):
+            out.append(int(j))
+        elif len(heads) < SADDLE_NEIGHBOURS:
+            heads.append(int(j))
+            out.append(int(j))
+    return np.asarray(out, dtype=near.dtype)
 
 
 def _fits_apart(a, b, max_apart_px: float | None) -> bool:

@@ -275,6 +275,24 @@ def test_saddle_neighbours_order_and_cap():
     assert saddle_neighbours(np.array([], int), contrast, 100.0, "alike").size == 0
 
 
+def test_saddle_neighbours_distinct_corners():
+    from cpdetect.classical import SADDLE_NEIGHBOURS, saddle_neighbours
+
+    # one corner seen on four levels (0-3, within 3 px of each other), then eight others 40 px apart
+    xy = np.array([[0.0, 0.0], [1.5, -1.0], [-2.0, 1.0], [0.5, 2.5]] + [[40.0 * (k + 1), 0.0] for k in range(8)])
+    contrast = np.array([100.0, 101.0, 99.0, 100.5] + [150.0 + k for k in range(8)])
+    near = np.arange(len(xy))
+    plain = saddle_neighbours(near, contrast, 100.0, "alike")
+    assert plain.tolist()[:4] == [0, 3, 1, 2]  # all four copies first, by likeness
+    distinct = saddle_neighbours(near, contrast, 100.0, "alike", xy, 5.0)
+    # the four copies take one slot: seven more corners, the last (11) left out; a superset of plain
+    assert distinct.tolist() == [0, 3, 1, 2, 4, 5, 6, 7, 8, 9, 10]
+    assert set(plain.tolist()) <= set(distinct.tolist())
+    # copies further apart than min_apart_px are distinct corners
+    assert saddle_neighbours(near[:4], contrast, 100.0, "alike", xy, 1.0).tolist() == [0, 3, 1, 2]
+    assert saddle_neighbours(np.array([], int), contrast, 100.0, "alike", xy, 5.0).size == 0
+
+
 def test_saddle_order_setting_is_checked():
     from cpdetect.errors import UsageError
 
@@ -283,6 +301,10 @@ def test_saddle_order_setting_is_checked():
     for bad in (0.5, 9.0):
         with pytest.raises(UsageError, match=r"saddle_ring_min_px must be in \[1, 8\]"):
             get_detector("classical", saddle_ring_min_px=bad)
+    for bad in (0.0, -0.1, 0.6):
+        with pytest.raises(UsageError, match=r"saddle_distinct_frac must be in \(0, 0.5\]"):
+            get_detector("classical", saddle_distinct_frac=bad)
+    assert get_detector("classical", saddle_distinct_frac=0.1).settings.saddle_distinct_frac == 0.1
 
 
 def test_grout_and_mullion_crosses_are_not_markers(det):
