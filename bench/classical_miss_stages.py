@@ -2,7 +2,8 @@
 
 Reads the metrics JSON of ``cpdetect eval DIR --detector classical --out F`` (its per-image records
 name the dataset, the settings and every missed true marker), runs the detector again on each image
-with a miss, with the same settings and the same decoded image, and records where its scan left
+with a miss, with the same settings and the same input (the file, or the decoded image where the
+evaluation's ``input`` says "array"), and records where its scan left
 every X-corner candidate (``ClassicalDetector.detect(image, trace=...)``, see
 ``cpdetect.classical._Scan``). Each missed marker gets the furthest stage reached by a candidate
 within max(3 px, 0.35 radius) of its true centre:
@@ -84,7 +85,10 @@ def main(argv=None) -> int:
     try:
         for rec, item in images_with_misses(ev, ds):
             trace: list[dict] = []
-            det.detect(read_image(ds.image_path(item)), trace=trace)
+            # the same input as the evaluation: the file (its reduced decode), or the decoded image
+            # where it ran on arrays (as every evaluation before stop 68 did, whose JSON has no "input")
+            path = ds.image_path(item)
+            det.detect(read_image(path) if ev.get("input", "array") == "array" else path, trace=trace)
             for m in rec["missed"]:
                 row = {"file": rec["file"], "x": m["x"], "y": m["y"], **{k: m.get(k) for k in TRUTH_FIELDS}}
                 row.update(stage_of(trace, m))

@@ -91,6 +91,11 @@ def test_a_run_on_an_evaluated_set(tmp_path):
     assert rep["missed"] == ev["markers"]
     assert sum(v["missed"] for v in rep["stages"].values()) == rep["missed"]
     assert "kept" not in rep["stages"] and rep["stages"]["score"]["missed"] >= 1
+    # a metrics file of before stop 68 (no "input": decoded arrays) is rerun on the arrays, the same here
+    assert ev.pop("input") == "file"
+    (tmp_path / "ev.json").write_text(json.dumps(ev))
+    assert stages.main([str(tmp_path / "ev.json"), "--out", str(out)]) == 0
+    assert json.loads(out.read_text())["stages"] == rep["stages"]
 
 
 def test_candidates_past_the_verification_cap_are_named_unverified():
