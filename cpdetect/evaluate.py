@@ -275,7 +275,7 @@ def evaluate(dataset: Dataset, detector: Any, limit: int | None = None,
     :func:`score_image` per image). ``from_file``: give the detector the image's path, as ``cpdetect
     detect`` does for a detector with ``accepts_path`` (the classical one decodes a large JPEG at
     reduced size for its search, which finds slightly different candidates than the area-reduced
-    array does); the timing then includes the decode. False: decode with
+    array does; only for such a detector); the timing then includes the decode. False: decode with
     :func:`cpdetect.imageio.read_image` (BGR uint8) and time only ``detector.detect``. None (default):
     the path exactly where ``cpdetect detect`` would pass it.
     Raises :class:`~cpdetect.errors.InputError` naming the file for an unreadable image or mask.
@@ -283,8 +283,12 @@ def evaluate(dataset: Dataset, detector: Any, limit: int | None = None,
     from .imageio import probe_image, read_image
 
     items = dataset.images if limit is None else dataset.images[:max(int(limit), 0)]
+    reads_files = bool(getattr(detector, "accepts_path", False))
     if from_file is None:
-        from_file = bool(getattr(detector, "accepts_path", False))
+        from_file = reads_files
+    elif from_file and not reads_files:
+        raise ValueError(f"detector {getattr(detector, 'name', type(detector).__name__)!r} takes decoded "
+                         "images, not paths (from_file=True needs accepts_path)")
     pixel = PixelCounts()
     records = []
     name = str(getattr(detector, "name", type(detector).__name__))

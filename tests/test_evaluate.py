@@ -200,6 +200,8 @@ def test_a_detector_that_reads_files_gets_the_path_as_in_detect(dataset, monkeyp
     m = evaluate(dataset, FileOracle(with_map=False), from_file=False)
     assert m["input"] == "array" and set(FileOracle.seen) == {"ndarray"} and m["recall"] == 1.0
     assert evaluate(dataset, oracle(with_map=False), limit=1)["input"] == "array"
+    with pytest.raises(ValueError, match="takes decoded images, not paths"):
+        evaluate(dataset, oracle(with_map=False), from_file=True)
     # the CLI's --from-array
     monkeypatch.setitem(registry._REGISTERED, "file-oracle", FileOracle)
     out = tmp_path / "m.json"
