@@ -283,15 +283,14 @@ def evaluate(dataset: Dataset, detector: Any, limit: int | None = None,
     from .imageio import probe_image, read_image
 
     items = dataset.images if limit is None else dataset.images[:max(int(limit), 0)]
+    name = str(getattr(detector, "name", type(detector).__name__))
     reads_files = bool(getattr(detector, "accepts_path", False))
     if from_file is None:
         from_file = reads_files
     elif from_file and not reads_files:
-        raise ValueError(f"detector {getattr(detector, 'name', type(detector).__name__)!r} takes decoded "
-                         "images, not paths (from_file=True needs accepts_path)")
+        raise ValueError(f"detector {name!r} takes decoded images, not paths (from_file=True needs accepts_path)")
     pixel = PixelCounts()
     records = []
-    name = str(getattr(detector, "name", type(detector).__name__))
     for k, item in enumerate(items):
         path = dataset.image_path(item)
         if from_file:
