@@ -408,8 +408,7 @@ class _Levels:
     def _sample_level(self, i: int, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
         """Bilinear samples of level i at full-res points (any shape), float32, NaN outside."""
         s, img = self.items[i]
-        lx = ((xs + 0.5) / s - 0.5).astype(np.float32).ravel()
-        ly = ((ys + 0.5) / s - 0.5).astype(np.float32).ravel()
+        lx, ly = _level_coords(xs, s), _level_coords(ys, s)
         h, w = img.shape[:2]
         if max(h, w) < REMAP_MAX:
             v = _remap_points(img, lx, ly)
@@ -426,8 +425,20 @@ class _Levels:
                 y0 = max(int(by[sel[0]]) * REMAP_BLOCK - 2, 0)
                 block = img[y0:min(y0 + REMAP_BLOCK + 4, h), x0:min(x0 + REMAP_BLOCK + 4, w)]
                 v[sel] = _remap_points(block, lx[sel] - x0, ly[sel] - y0)
-        v[(lx < -0.5) | (ly < -0.5) | (lx > w - 0.5) | (ly > h - 0.5)] = np.nan
+        # the mask only where some point may lie outside (a NaN coordinate fails the test too)
+        if lx.size and not (lx.min() >= -0.5 and ly.min() >= -0.5 and lx.max() <= w - 0.5 and ly.max() <= h - 0.5):
+            v[(lx < -0.5) | (ly < -0.5) | (lx > w - 0.5) | (ly > h - 0.5)] = np.nan
         return v.reshape(np.shape(xs))
+
+
+def _level_coords(full: np.ndarray, s: float) -> np.ndarray:
+    """Flat float32 level pixels (full + 0.5) / s - 0.5 of full-resolution coordinates, worked out in
+    their own precision as written (in place: the prefilter passes arrays of ~300,000 points)."""
+    t = full + 0.5
+    if s != 1.0:  # x / 1.0 is x exactly
+        t /= s
+    t -= 0.5
+    return t.astype(np.float32).ravel()
 
 
 def _bright_axis(h2: np.ndarray) -> float:
@@ -472,6 +483,13 @@ class _Verified:
     outline: np.ndarray  # (k, 2) full-res polygon of the pattern
     levels: tuple[float, float] = (0.0, 255.0)  # dark and bright grey levels
     dark_share: float = 0.5  # the share of the full turn the dark sectors take
+
+
+def _nan_to_zero(a: np.ndarray) -> np.ndarray:
+    """``a`` with NaN set to 0, in place: np.nan_to_num for samples, which are never infinite (bilinear
+    samples of finite images), at a third of its passes over the array."""
+    np.copyto(a, 0.0, where=np.isnan(a))
+    return a
 
 
 def _nanfree(a: np.ndarray) -> bool:
@@ -936,7 +954,7 @@ class _Verifier:
         # decision to the full test below, so the result is the same as without this step
         f2 = 1.08 ** np.array([0.0, 7.0])
         radii2 = r_start[:, None] * f2[None, :]
-        P2 = np.nan_to_num(self.levels.sample(
+        P2 = _nan_to_zero(self.levels.sample(
             xy[:, 0, None, None] + radii2[:, :, None] * self.cos[None, None, :],
             xy[:, 1, None, None] + radii2[:, :, None] * self.sin[None, None, :],
             (radii2 * (TWO_PI / self.N_THETA))[:, :, None]).astype(np.float64))
@@ -971,7 +989,7 @@ class _Verifier:
         ys = xy[:, 1, None, None] + radii[:, :, None] * self.sin[None, None, :]
         P = self.levels.sample(xs, ys, (radii * (TWO_PI / self.N_THETA))[:, :, None]).astype(np.float64)
         ok = ~np.isnan(P).any(axis=(1, 2))
-        P = np.nan_to_num(P)
+        P = _nan_to_zero(P)
         mean = P.mean(2, keepdims=True)
         h2, q, std = self._second_harmonic(P)
         dphi = np.abs(_wrap(np.angle(h2) - np.angle(h2[:, :1])))
@@ -1951,13 +1969,19 @@ class _Scan:
         h, w = gray.shape
         verifier = _Verifier(levels, s, (w, h))
         # coarse levels first: big markers are settled before their centres show again at fine levels
-        cands = sorted(cands, key=lambda c: (-c.level, -c.contrast))
-        cand_xy = np.array([[(c.x + 0.5) * k - 0.5, (c.y + 0.5) * k - 0.5] for c in cands]).reshape(-1, 2)
-        cand_c = np.array([c.contrast for c in cands])
-        cand_scale = np.array([k * 2.0 ** c.level for c in cands])
+        # (as arrays: 4,166 candidates on the textured 45 MP bench photograph, where per-candidate
+        # Python arithmetic and a sort by a key function took 5 ms, this 2 ms; the same stable order)
+        cand_level = np.array([c.level for c in cands], np.int64)
+        cand_c = np.array([c.contrast for c in cands], float)
+        order = np.lexsort((-cand_c, -cand_level))
+        cands = [cands[i] for i in order]
+        cand_level, cand_c = cand_level[order], cand_c[order]
+        cand_xy = np.column_stack([np.array([c.x for c in cands], float), np.array([c.y for c in cands], float)])
+        cand_xy = ((cand_xy + 0.5) * k - 0.5).reshape(-1, 2)
+        cand_scale = k * 2.0 ** cand_level
         # one vectorised look at every candidate's inner rings before the per-candidate work
         passed = verifier.prefilter(cand_xy, np.maximum(1.5, 1.5 * cand_scale), chat=cand_c,
-                                    level=np.array([c.level for c in cands], float))
+                                    level=cand_level.astype(float))
         self.prefiltered += int(passed.sum())
         # candidates the prefilter stopped count as rejected whether or not a marker found later
         # covers them (looking that up candidate by candidate in Python cost 0.07 s on 45 MP images)

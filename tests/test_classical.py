@@ -1256,3 +1256,59 @@ def test_the_colour_pass_takes_the_paint_fit_where_the_two_fits_lie_far_apart():
     assert error() < 1.0  # the default since stop 58
     with pytest.raises(ValueError, match="colour_fit_max_apart_px"):
         ClassicalDetector(colour_fit_max_apart_px=0.0)
+
+
+def test_level_sampling_of_a_ramp_inside_and_outside_the_image():
+    # a ramp is sampled exactly by bilinear interpolation on every level (area reduction keeps it a
+    # ramp), in full-resolution coordinates; points beyond half a pixel past the border are NaN
+    from cpdetect.classical import _level_coords, _Levels
+    from cpdetect.xcorner import build_pyramid
+
+    yy, xx = np.mgrid[0:480, 0:640].astype(np.float32)
+    full = (0.1 * xx + 0.2 * yy).astype(np.float32)
+    search = cv2.resize(full, (320, 240), interpolation=cv2.INTER_AREA)
+    levels = _Levels(full, 2, build_pyramid(search))
+    xs = np.array([[100.3, 200.7, 301.1], [-3.0, 50.0, 700.0]])
+    ys = np.array([[100.6, 150.2, 222.9], [10.0, -0.4, 10.0]])
+    for spacing in (0.5, 2.0, 4.0, 8.0):
+        v = levels.sample(xs, ys, np.full((2, 1), spacing))
+        assert np.allclose(v[0], 0.1 * xs[0] + 0.2 * ys[0], atol=0.02)
+        assert np.isnan(v[1, 0]) and np.isnan(v[1, 2])
+        # within half a pixel of the border: the level's first row, replicated
+        sc = levels.scales[max(int(np.searchsorted(levels.scales, spacing, side="right")) - 1, 0)]
+        assert abs(v[1, 1] - (0.1 * 50.0 + 0.2 * (0.5 * sc - 0.5))) < 0.02
+    # level coordinates are (x + 0.5) / s - 0.5 computed in the input's precision, then float32
+    x = np.random.default_rng(3).uniform(-5, 9000, 1000)
+    for s in (1.0, 4.0, 32.0):
+        assert np.array_equal(_level_coords(x, s), ((x + 0.5) / s - 0.5).astype(np.float32))
+        assert np.array_equal(_level_coords(x.astype(np.float32), s),
+                              ((x.astype(np.float32) + 0.5) / s - 0.5).astype(np.float32))
+
+
+def test_nan_to_zero_matches_numpy_on_samples():
+    from cpdetect.classical import _nan_to_zero
+
+    a = np.random.default_rng(4).uniform(0, 255, (50, 8, 72))
+    a[a > 240] = np.nan
+    assert np.isnan(a).any()
+    expect = np.nan_to_num(a)
+    assert np.array_equal(_nan_to_zero(a), expect) and not np.isnan(a).any()  # in place
+
+
+def test_scan_verifies_coarse_levels_first_strongest_first_within_a_level():
+    # three markers of different size on texture: the scan's trace lists the candidates past the
+    # prefilter in the order they were looked at, which must be by level (coarse first), then by
+    # X-corner contrast (strongest first); the prefilter's rejects are listed in that order too
+    img = textured_background((300, 400), seed=5)
+    for (cx, cy), r, t in [((90.2, 80.7), 14.0, "square"), ((250.4, 150.1), 45.0, "circle"),
+                           ((330.6, 240.3), 24.0, "diagonal")]:
+        spec = MarkerSpec(t, size_m=1.0)
+        render_marker(spec, frontal_homography((cx, cy), r, 0.4, spec), img.shape).composite(img, 35.0, 220.0)
+    img += np.random.default_rng(6).normal(0, 2.0, img.shape)
+    trace: list = []
+    res = ClassicalDetector().detect(np.clip(img + 0.5, 0, 255).astype(np.uint8), trace=trace)
+    assert len(res.detections) == 3
+    gray = [t for t in trace if t["pass"] == "gray"]
+    for rows in ([t for t in gray if t["stage"] == "prefilter"], [t for t in gray if t["stage"] != "prefilter"]):
+        keys = [(-t["level"], -t["contrast"]) for t in rows]
+        assert len(keys) >= 3 and keys == sorted(keys)
