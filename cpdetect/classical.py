@@ -1977,7 +1977,7 @@ class _Scan:
         cands = [cands[i] for i in order]
         cand_level, cand_c = cand_level[order], cand_c[order]
         cand_xy = np.column_stack([np.array([c.x for c in cands], float), np.array([c.y for c in cands], float)])
-        cand_xy = ((cand_xy + 0.5) * k - 0.5).reshape(-1, 2)
+        cand_xy = (cand_xy + 0.5) * k - 0.5  # (n, 2), also for n = 0
         cand_scale = k * 2.0 ** cand_level
         # one vectorised look at every candidate's inner rings before the per-candidate work
         passed = verifier.prefilter(cand_xy, np.maximum(1.5, 1.5 * cand_scale), chat=cand_c,
