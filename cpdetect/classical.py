@@ -91,6 +91,9 @@ Pipeline for one image:
    ``colour_min_score`` kept, and the centre comes from whichever of gray and paint fits with the
    smaller sigma. For a JPEG searched at reduced size the paint image is decoded at that size
    directly. On train-split dev sets: recall +2.3 and +1.3 points, no more false markers, 10 % more time.
+   With ``chroma_pass`` (off by default) a third search runs on the chroma image (max less min of
+   the channels), for paint as bright as the dark quadrants, verifying only X-corners 1.5 times
+   stronger there than in gray and in paint.
 7. **Probability map** at search resolution: the filled outline of each accepted marker (1 inside).
 
 All positions reported are full-resolution pixels, OpenCV convention.
@@ -109,7 +112,7 @@ import numpy as np
 
 from .centre_reach import CENTRE_REACH_MIN, centre_level_offset, centre_reach, edge_blur_px
 from .detector import as_gray_uint8, settings_from_dataclass
-from .imageio import paint_image
+from .imageio import chroma_image, paint_image
 from .refine import METHODS, refine_center, refine_center_coarse_to_fine, refine_in_outline
 from .types import DetectionResult, MarkerDetection
 from .xcorner import build_pyramid, find_candidates
@@ -168,6 +171,14 @@ class ClassicalSettings:
     colour_pass: for colour images, also search the max-of-channels image for painted markers whose
         luminance contrast is weak (red or orange on black).
     colour_gain: the colour pass verifies only X-corners this many times stronger there than in gray.
+    chroma_pass: with ``colour_pass``, a third search on the chroma image (max less min of the
+        channels, :func:`cpdetect.imageio.chroma_image`) for paint whose brightness matches the dark
+        quadrants' (a dull pink or red on mid gray shows in neither gray nor the max of the channels);
+        it verifies only X-corners ``colour_gain`` times stronger there than in both gray and paint.
+    colour_min_candidate_score: the candidate cut (as ``min_candidate_score``) in the colour passes,
+        whose candidates the gain test has thinned already; None: ``min_candidate_score``. The
+        candidate trees were fitted on gray candidates, and paint and chroma, which JPEG keeps at half
+        resolution, look blurrier than gray does.
     colour_min_score: least score of a marker found by the colour pass only (below ``min_score`` has no
         effect); the gray pass's bar (with the candidate cut of 0.2 a higher bar for the colour pass
         only lost markers on the train-split sets).
@@ -289,6 +300,8 @@ class ClassicalSettings:
     refine_method: str = "auto"
     colour_pass: bool = True
     colour_gain: float = 1.5
+    chroma_pass: bool = False
+    colour_min_candidate_score: float | None = None
     colour_min_score: float = 0.5
     colour_fit_max_apart_px: float | None = 2.0
     probability_map: bool = True
@@ -325,6 +338,8 @@ class ClassicalSettings:
             raise ValueError("min_score must be in [0, 1] (a probability)")
         if not 0.0 <= self.min_candidate_score < 1.0:
             raise ValueError("min_candidate_score must be in [0, 1)")
+        if self.colour_min_candidate_score is not None and not 0.0 <= self.colour_min_candidate_score < 1.0:
+            raise ValueError("colour_min_candidate_score must be in [0, 1) or null (min_candidate_score)")
         if not self.colour_gain >= 1.0:
             raise ValueError("colour_gain must be >= 1")
         if not 0.0 <= self.colour_min_score <= 1.0:
@@ -1840,21 +1855,25 @@ class ClassicalDetector:
         small, full = read_reduced_colour_then_gray(path, k)
         try:
             searched = self._search(cv2.cvtColor(small, cv2.COLOR_BGR2GRAY))
-            paint = paint_image(small)
+            colour = self._colour_images(small)
         except BaseException:
             full.exception()
             raise
-        return self._detect_gray(full.result(), paint, searched, trace=trace)
+        return self._detect_gray(full.result(), colour, searched, trace=trace)
 
-    def _from_array(self, image: Any) -> tuple[np.ndarray, np.ndarray | None]:
+    def _from_array(self, image: Any) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
         a = np.asarray(image)
         if a.dtype != np.uint8:
             raise ValueError(f"expected a uint8 image, got {a.dtype}")
         gray = as_gray_uint8(a)
         if not (self.settings.colour_pass and a.ndim == 3 and a.shape[2] >= 3):
             return gray, None
-        paint = paint_image(np.ascontiguousarray(a[:, :, :3]))
-        return gray, _reduced(paint, self._search_factor(gray.shape[1], gray.shape[0]))
+        k = self._search_factor(gray.shape[1], gray.shape[0])
+        return gray, tuple(_reduced(c, k) for c in self._colour_images(np.ascontiguousarray(a[:, :, :3])))
+
+    def _colour_images(self, bgr: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The colour passes' images of a BGR image, at its size: paint, then chroma (``chroma_pass``)."""
+        return (paint_image(bgr),) + ((chroma_image(bgr),) if self.settings.chroma_pass else ())
 
     def _search_factor(self, w: int, h: int) -> int:
         for k in (1, 2, 4, 8):
@@ -1870,10 +1889,11 @@ class ClassicalDetector:
         cands = find_candidates(pyramid, 0.6 * s.min_contrast, s.max_candidates_per_level, maps=gray_c)
         return search, pyramid, gray_c, cands
 
-    def _detect_gray(self, gray: np.ndarray, paint: np.ndarray | None = None,
+    def _detect_gray(self, gray: np.ndarray, colour: tuple[np.ndarray, ...] | None = None,
                      searched: tuple | None = None, trace: list | None = None) -> DetectionResult:
-        """Detect on ``gray`` (full resolution); ``paint``: the max-of-channels image of a colour
-        photo at search resolution (see :func:`paint_image`) for the colour pass, or None;
+        """Detect on ``gray`` (full resolution); ``colour``: the colour passes' images of a colour
+        photo at search resolution (:meth:`_colour_images`: the max-of-channels image, see
+        :func:`paint_image`, then the chroma image), or None;
         ``searched``: :meth:`_search` of the search image when it was made otherwise (else from
         ``gray`` area-reduced)."""
         import cv2
@@ -1889,12 +1909,12 @@ class ClassicalDetector:
         with ThreadPoolExecutor(1) as pool:
             # the paint image's X-corners are found beside the gray verification (mostly OpenCV
             # and NumPy work, which runs outside the GIL, against mostly Python work)
-            paint_cands = pool.submit(self._paint_candidates, paint) if paint is not None and s.colour_pass else None
+            colour_cands = pool.submit(self._colour_candidates, colour) if colour and s.colour_pass else None
             rejected = scan.run(levels, cands, s.min_score)
             extras = {"search_factor": k, "candidates": len(cands), "prefiltered": scan.prefiltered,
                       "rejected": rejected}
-            if paint_cands is not None:
-                extras.update(self._colour_pass(scan, gray_c, paint, *paint_cands.result()))
+            if colour_cands is not None:
+                extras.update(self._colour_pass(scan, gray_c, colour, colour_cands.result()))
         if scan.unverified:
             extras["unverified"] = scan.unverified
         accepted.sort(key=lambda t: -t[0].score)
@@ -1910,40 +1930,49 @@ class ClassicalDetector:
             np.clip(prob, 0.0, 1.0, out=prob)
         return DetectionResult(dets, (w, h), prob, 0.0, extras)
 
-    def _paint_candidates(self, paint: np.ndarray) -> tuple[list[np.ndarray], list]:
-        """The paint image's pyramid and X-corner candidates (see :meth:`_colour_pass`)."""
+    def _colour_candidates(self, colour: tuple[np.ndarray, ...]) -> list[tuple[list, list, list]]:
+        """Each colour image's pyramid, X-corner candidates and X-corner maps (see :meth:`_colour_pass`)."""
         s = self.settings
-        ppyr = build_pyramid(paint)
-        return ppyr, find_candidates(ppyr, 0.6 * s.min_contrast, s.max_candidates_per_level)
+        out = []
+        for img in colour:
+            pyr, maps = build_pyramid(img), []
+            out.append((pyr, find_candidates(pyr, 0.6 * s.min_contrast, s.max_candidates_per_level, maps=maps), maps))
+        return out
 
-    def _colour_pass(self, scan: "_Scan", gray_c: list[np.ndarray], paint: np.ndarray, ppyr: list[np.ndarray],
-                     pc: list) -> dict:
-        """Second search on the paint image, for markers whose paint differs from the dark quadrants
-        in colour more than in luminance (red on black: a third of the contrast in gray, sometimes
-        none). Only X-corners at least ``colour_gain`` times stronger in paint than in gray are
-        verified (the others were seen by the gray pass), and only scores of ``colour_min_score``
-        are kept."""
+    def _colour_pass(self, scan: "_Scan", gray_c: list[np.ndarray], colour: tuple[np.ndarray, ...],
+                     found: list[tuple[list, list, list]]) -> dict:
+        """Searches on the colour images, for markers whose paint differs from the dark quadrants in
+        colour more than in luminance (red on black: a third of the contrast in gray, sometimes
+        none): the paint image (extras ``colour_*``), then the chroma image (``chroma_*``). Only
+        X-corners at least ``colour_gain`` times stronger there than in gray, and than in the
+        colour images searched before, are verified (the others were seen already), and only
+        scores of ``colour_min_score`` are kept."""
         import cv2
 
         s = self.settings
-        # the gray contrast around each paint X-corner: the max over 3x3 at the same level
-        gray_near = [cv2.dilate(g, np.ones((3, 3), np.uint8)) for g in gray_c]
-        keep = []
-        for lev in range(min(len(ppyr), len(gray_c))):
-            at = [c for c in pc if c.level == lev]
-            if not at:
-                continue
-            g, sc = gray_near[lev], 2.0 ** lev
-            xy = np.array([[c.x, c.y] for c in at])
-            ix = np.clip(np.round((xy[:, 0] + 0.5) / sc - 0.5).astype(np.intp), 0, g.shape[1] - 1)
-            iy = np.clip(np.round((xy[:, 1] + 0.5) / sc - 0.5).astype(np.intp), 0, g.shape[0] - 1)
-            strong = np.array([c.contrast for c in at]) >= s.colour_gain * g[iy, ix]
-            keep.extend(c for c, ok in zip(at, strong) if ok)
-        plevels = _Levels(None, scan.k, ppyr)
-        n0 = len(scan.accepted)
-        rejected = scan.run(plevels, keep, max(s.min_score, s.colour_min_score), paint_search=paint)
-        return {"colour_candidates": len(keep), "colour_found": len(scan.accepted) - n0,
-                "colour_rejected": rejected}
+        extras: dict = {}
+        # the contrast the earlier searches saw around each X-corner: the max over 3x3 at the same level
+        seen = [cv2.dilate(g, np.ones((3, 3), np.uint8)) for g in gray_c]
+        for img, (pyr, pc, maps), name in zip(colour, found, ("colour", "chroma")):
+            keep = []
+            for lev in range(min(len(pyr), len(seen))):
+                at = [c for c in pc if c.level == lev]
+                if not at:
+                    continue
+                g, sc = seen[lev], 2.0 ** lev
+                xy = np.array([[c.x, c.y] for c in at])
+                ix = np.clip(np.round((xy[:, 0] + 0.5) / sc - 0.5).astype(np.intp), 0, g.shape[1] - 1)
+                iy = np.clip(np.round((xy[:, 1] + 0.5) / sc - 0.5).astype(np.intp), 0, g.shape[0] - 1)
+                strong = np.array([c.contrast for c in at]) >= s.colour_gain * g[iy, ix]
+                keep.extend(c for c, ok in zip(at, strong) if ok)
+            n0 = len(scan.accepted)
+            rejected = scan.run(_Levels(None, scan.k, pyr), keep, max(s.min_score, s.colour_min_score),
+                                paint_search=img, pass_name=name)
+            extras.update({f"{name}_candidates": len(keep), f"{name}_found": len(scan.accepted) - n0,
+                           f"{name}_rejected": rejected})
+            if img is not colour[-1]:  # what the next colour image's X-corners must beat
+                seen = [np.maximum(a, cv2.dilate(b, np.ones((3, 3), np.uint8))) for a, b in zip(seen, maps)]
+        return extras
 
 
 class _Scan:
@@ -1963,10 +1992,15 @@ class _Scan:
         self.prefiltered = 0
         self.unverified = 0  # candidates past the prefilter left out by max_verified
 
-    def run(self, levels: "_Levels", cands: list, min_score: float, paint_search: np.ndarray | None = None) -> int:
-        """Candidates (search-image pixels) checked against ``levels``; the number rejected."""
+    def run(self, levels: "_Levels", cands: list, min_score: float, paint_search: np.ndarray | None = None,
+            pass_name: str = "colour") -> int:
+        """Candidates (search-image pixels) checked against ``levels``; the number rejected.
+        ``paint_search``: the colour image searched (search resolution) in a colour pass, whose
+        traced candidates say ``pass_name``."""
         s, k, gray, accepted = self.s, self.k, self.gray, self.accepted
         h, w = gray.shape
+        if paint_search is not None and s.colour_min_candidate_score is not None:
+            s = replace(s, min_candidate_score=s.colour_min_candidate_score)
         verifier = _Verifier(levels, s, (w, h))
         # coarse levels first: big markers are settled before their centres show again at fine levels
         # (as arrays: 4,166 candidates on the textured 45 MP bench photograph, where per-candidate
@@ -1994,7 +2028,7 @@ class _Scan:
                 return
             c = cands[ci]
             row = {"x": float(cand_xy[ci, 0]), "y": float(cand_xy[ci, 1]), "level": int(c.level),
-                   "contrast": float(c.contrast), "pass": "colour" if colour else "gray", "stage": stage}
+                   "contrast": float(c.contrast), "pass": pass_name if colour else "gray", "stage": stage}
             if v is not None:
                 row.update(score=float(v.score), type=v.type, radius_px=float(v.radius))
             self.trace.append(row)

@@ -399,6 +399,17 @@ def paint_image(bgr: np.ndarray) -> np.ndarray:
     return cv2.max(cv2.max(b, g), r)
 
 
+def chroma_image(bgr: np.ndarray) -> np.ndarray:
+    """The max less the min of the three channels (HSV chroma, uint8 HxW) of a BGR image: 0 for any
+    grey, light or dark, so paint shows against gray or black quadrants by its colour alone, even
+    where its brightness matches theirs (a dull pink on mid gray has next to no contrast in either
+    luminance or the max of the channels)."""
+    import cv2
+
+    b, g, r = cv2.split(bgr)
+    return cv2.subtract(cv2.max(cv2.max(b, g), r), cv2.min(cv2.min(b, g), r))
+
+
 def list_images(path: str | os.PathLike) -> list[Path]:
     """A single image, or the images directly inside a folder (sorted by name)."""
     p = Path(path)

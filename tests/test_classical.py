@@ -837,17 +837,18 @@ def test_candidate_score_spares_verification_of_weak_saddles_not_of_markers():
         ClassicalSettings(min_candidate_score=1.0)
 
 
-def painted_marker(center, radius, shape, marker_type="square", angle=0.4, seed=3):
-    """BGR image of a marker painted red on grey: luminance contrast 4 grey levels (below the
-    detector's minimum), colour contrast 130 in the red channel."""
+def painted_marker(center, radius, shape, marker_type="square", angle=0.4, seed=3,
+                   dark=(70.0, 70.0, 70.0), paint=(20.0, 20.0, 200.0)):
+    """BGR image of a marker with ``dark`` (BGR) quadrants and ``paint`` ones, by default red on grey:
+    luminance contrast 4 grey levels (below the detector's minimum), colour contrast 130 in the red
+    channel."""
     from cpdetect.markers import frontal_homography
 
     bg = textured_background(shape, seed)
     img = np.repeat(bg[..., None], 3, axis=2).astype(np.float32)
     spec = MarkerSpec(marker_type, size_m=1.0)
     rm = render_marker(spec, frontal_homography(center, radius, angle, spec), shape)
-    dark, red = np.array([70.0, 70.0, 70.0]), np.array([20.0, 20.0, 200.0])
-    rm.composite(img, dark, red)
+    rm.composite(img, np.array(dark), np.array(paint))
     img += np.random.default_rng(seed).normal(0.0, 1.5, img.shape)
     return np.clip(img + 0.5, 0, 255).astype(np.uint8)
 
@@ -864,6 +865,51 @@ def test_marker_painted_in_colour_is_found_by_the_colour_pass(marker_type):
     assert m.type == marker_type
     assert 0.0 < np.hypot(m.x - 150.3, m.y - 118.8) < 0.1
     assert res.extras["colour_found"] == 1
+
+
+@pytest.mark.parametrize("marker_type", MARKER_TYPES)
+def test_paint_as_bright_as_the_dark_quadrants_is_found_by_the_chroma_pass(marker_type):
+    # a dull yellow (BGR 40, 76, 80) on grey 72: 1 grey level of luminance contrast, 8 in the max of
+    # the channels (both under the detector's minimum of 12), 40 in chroma against the grey's 0
+    paint, dark = (40.0, 76.0, 80.0), (72.0, 72.0, 72.0)
+    img = painted_marker((150.3, 118.8), 28.0, (240, 320), marker_type, dark=dark, paint=paint)
+    assert abs(float(np.dot([0.114, 0.587, 0.299], paint)) - 72.0) < 1.5
+    plain = get_detector("classical").detect(img)
+    assert plain.detections == [] and "chroma_found" not in plain.extras
+    # without the colour pass there is no chroma pass either
+    assert get_detector("classical", colour_pass=False, chroma_pass=True).detect(img).detections == []
+    res = get_detector("classical", chroma_pass=True).detect(img)
+    assert res.extras["colour_found"] == 0 and res.extras["chroma_found"] == 1 and len(res.detections) == 1
+    m = res.detections[0]
+    assert m.type == marker_type
+    assert 0.0 < np.hypot(m.x - 150.3, m.y - 118.8) < 0.15
+    # a gray image has no chroma to search
+    assert get_detector("classical", chroma_pass=True).detect(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)).detections == []
+
+
+def test_the_chroma_pass_leaves_markers_the_paint_pass_found_to_it():
+    # red on grey is 2.7 times stronger in paint than in gray, and stronger still in chroma (180 against
+    # 130), but not 1.5 times paint's: the chroma pass does not verify it again
+    img = painted_marker((150.3, 118.8), 28.0, (240, 320), "circle")
+    plain = get_detector("classical").detect(img)
+    res = get_detector("classical", chroma_pass=True).detect(img)
+    assert res.extras["colour_found"] == 1 and res.extras["chroma_found"] == 0
+    assert res.extras["chroma_candidates"] < res.extras["colour_candidates"]
+    assert res.detections == plain.detections
+
+
+def test_the_colour_passes_have_their_own_candidate_cut():
+    from cpdetect.classical import ClassicalSettings
+
+    img = painted_marker((150.3, 118.8), 28.0, (240, 320), "square")
+    assert len(get_detector("classical", colour_min_candidate_score=0.0).detect(img).detections) == 1
+    # a cut no candidate passes stops the colour pass, and only it: a gray marker is still found
+    assert get_detector("classical", colour_min_candidate_score=0.999).detect(img).detections == []
+    gray_marker = marker_image((150.3, 118.8), 28.0, 0.4, "square", (240, 320))
+    assert gray_marker.ndim == 3
+    assert len(get_detector("classical", colour_min_candidate_score=0.999).detect(gray_marker).detections) == 1
+    with pytest.raises(ValueError, match="colour_min_candidate_score"):
+        ClassicalSettings(colour_min_candidate_score=1.0)
 
 
 def test_painted_marker_found_from_files_at_full_and_reduced_search(tmp_path):
