@@ -452,6 +452,7 @@ def generate_image(index: int, seed: int, opt: SynthImageOptions, lib: Backgroun
     # markers
     mask = np.zeros((h, w), np.uint8)
     texture = None
+    drawn: list[tuple[int, int, int, int]] = []  # boxes (x0, y0, w, h) of the markers drawn so far
     truths: list[TrueMarker] = []
     for q in placed:
         rm = render_marker(q.spec, q.H, (h, w), supersample=opt.supersample)
@@ -460,6 +461,7 @@ def generate_image(index: int, seed: int, opt: SynthImageOptions, lib: Backgroun
         before = box.copy()
         d, b, m = _levels(rng, opt)
         rm.composite(img, d, b, m)
+        drawn.append((rm.x0, rm.y0, bw, bh))
         tex_amount = 0.0
         if rng.random() < opt.texture_prob:
             tex_amount = float(rng.uniform(0.05, opt.texture_max))
@@ -483,7 +485,11 @@ def generate_image(index: int, seed: int, opt: SynthImageOptions, lib: Backgroun
                 sy = int(rng.integers(0, max(h - bh, 1)))
                 sx = int(rng.integers(0, max(w - bw, 1)))
                 other = img[sy:sy + bh, sx:sx + bw].copy()
-                if other.shape[:2] != (bh, bw):
+                # a patch with a marker drawn in it (this one included) would copy that marker, one
+                # the truth does not list (before stop 70 it did: a Secchi disk on a panel, counted
+                # false for every detector); the surface under this marker shows then, shaded
+                if other.shape[:2] != (bh, bw) or any(
+                        sx < x0 + ww and x0 < sx + bw and sy < y0 + hh and y0 < sy + bh for x0, y0, ww, hh in drawn):
                     other = before
                 shade = np.float32(rng.uniform(0.5, 1.0))
                 a = occ[..., None]
