@@ -9,7 +9,10 @@ every X-corner candidate (``ClassicalDetector.detect(image, trace=...)``, see
 within max(3 px, 0.35 radius) of its true centre:
 
 - ``no candidate``: no X-corner candidate there (too weak, past the per-level cap, or none);
-- ``prefilter``: every candidate there was stopped by the prefilter (inner rings, candidate score);
+- ``prefilter: <reason>``: every candidate there was stopped by the prefilter (inner rings, candidate
+  score), the reason the one its candidates failed first most often (``PREFILTER_REASONS`` of
+  :mod:`cpdetect.classical`: rings leaving the image, not four sectors, a weak or turning four-sector
+  pattern, low contrast, opposite sectors unlike, sectors not uniform, the candidate score);
 - ``unverified``: past ``max_verified``;
 - ``verify: <reason>``: the marker model does not fit (the most frequent reason among them);
 - ``score``: verified, but scored under the cut; ``beside a found marker``: skipped near one;
@@ -55,8 +58,8 @@ def stage_of(trace: list[dict], truth: dict) -> dict:
     rank = {s: i for i, s in enumerate(ORDER)}
     best = min(rank[t["stage"].split(":")[0]] for t in near)
     stage = ORDER[best]
-    if stage == "verify":
-        stage = Counter(t["stage"] for t in near if t["stage"].startswith("verify")).most_common(1)[0][0]
+    if stage in ("verify", "prefilter"):
+        stage = Counter(t["stage"] for t in near if t["stage"].startswith(stage)).most_common(1)[0][0]
     scores = [t["score"] for t in near if "score" in t]
     return {"stage": stage, "candidates": len(near), "best_score": max(scores) if scores else None}
 

@@ -144,6 +144,9 @@ AXES_TOLERANCE_DEG = 12.0
 SADDLE_ORDERS = ("strongest", "alike")
 SADDLE_NEIGHBOURS = 8  # at most this many near X-corners are tested by the single-saddle test
 TAG_FIELD = "dark field all around (a tag's bit cells)"  # the outer-ring test's reason for a tag's bit corner
+# the prefilter's tests, in the order it makes them: a traced candidate it stops says the first it fails
+PREFILTER_REASONS = ("rings leave the image", "not four sectors", "weak four-sector pattern", "sector edges turn",
+                     "contrast too low", "opposite sectors differ", "sectors not uniform", "candidate score")
 
 
 def candidate_score(feats: dict) -> np.ndarray:
@@ -498,6 +501,15 @@ class _Verified:
     outline: np.ndarray  # (k, 2) full-res polygon of the pattern
     levels: tuple[float, float] = (0.0, 255.0)  # dark and bright grey levels
     dark_share: float = 0.5  # the share of the full turn the dark sectors take
+
+
+def _label_first(why: np.ndarray, idx: np.ndarray, failed: tuple, labels: tuple) -> None:
+    """why[idx[i]] = the label of the first of the ``failed`` masks (each over idx) true at i, in order;
+    entries that fail none keep their value."""
+    still = np.ones(len(idx), bool)
+    for mask, label in zip(failed, labels):
+        why[idx[still & mask]] = label
+        still &= ~mask
 
 
 def _nan_to_zero(a: np.ndarray) -> np.ndarray:
@@ -982,6 +994,21 @@ class _Verifier:
                                                      sub(level))
         return passed, feats
 
+    def prefilter_reasons(self, xy: np.ndarray, r_start: np.ndarray, q_min: float = 0.75,
+                          chat: np.ndarray | None = None, level: np.ndarray | None = None) -> np.ndarray:
+        """Why :meth:`prefilter` stops each candidate (n, 2) full-res: the first of PREFILTER_REASONS
+        whose test it fails, or "" where it passes them all (object array (n,)). For traces only: it
+        makes the full tests on every candidate, without the first look at two rings (whose margins
+        leave each decision to the full tests), so it costs several times the prefilter."""
+        why = np.full(len(xy), "", object)
+        if len(xy) == 0:
+            return why
+        passed, feats = self._prefilter_rings(xy, np.asarray(r_start, float), q_min, chat, level, why=why)
+        if feats is not None and self.s.min_candidate_score > 0 and passed.any():
+            low = candidate_score(feats) < self.s.min_candidate_score
+            why[np.nonzero(passed)[0][low]] = PREFILTER_REASONS[7]
+        return why
+
     def _second_harmonic(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Rings P (..., N_THETA) -> their second angular harmonic h2, its strength q (sqrt 2 |h2| over
         the ring's standard deviation: 1 for a pure cos 2t profile) and that deviation (+1e-6); the
@@ -991,8 +1018,9 @@ class _Verifier:
         return h2, math.sqrt(2) * np.abs(h2) / std, std
 
     def _prefilter_rings(self, xy: np.ndarray, r_start: np.ndarray, q_min: float, chat: np.ndarray | None,
-                         level: np.ndarray | None) -> tuple[np.ndarray, dict | None]:
-        """:meth:`prefilter_features` on all eight rings (candidates that passed its first look)."""
+                         level: np.ndarray | None, why: np.ndarray | None = None) -> tuple[np.ndarray, dict | None]:
+        """:meth:`prefilter_features` on all eight rings (candidates that passed its first look);
+        ``why`` (n,), when given, receives the first reason (PREFILTER_REASONS) each candidate fails."""
         want = chat is not None and level is not None
         if len(xy) == 0:
             return np.zeros(0, bool), ({k: np.zeros(0) for k in CANDIDATE_FEATURES} if want else None)
@@ -1014,10 +1042,16 @@ class _Verifier:
         change = sign != np.roll(sign, 1, axis=1)
         four = change.sum(1) == 4
         passed = ok & four & (q.min(1) >= q_min) & (dphi.max(1) <= math.radians(25))
+        if why is not None:
+            _label_first(why, np.arange(len(xy)), (~ok, ~four, ~(q.min(1) >= q_min),
+                                                    ~(dphi.max(1) <= math.radians(25))), PREFILTER_REASONS[:4])
         if not passed.any():
             return passed, ({k: np.zeros(0) for k in CANDIDATE_FEATURES} if want else None)
         lv = self._sector_levels(P[passed], change[passed])
         plausible = (lv["C"] >= 0.7 * self.s.min_contrast) & (lv["opp"] <= 0.3) & (lv["spread"] <= 0.25)
+        if why is not None:
+            _label_first(why, np.nonzero(passed)[0], (~(lv["C"] >= 0.7 * self.s.min_contrast), ~(lv["opp"] <= 0.3),
+                                                       ~(lv["spread"] <= 0.25)), PREFILTER_REASONS[4:7])
         feats = None
         if want:
             feats = dict(qmin=q[passed].min(1), qmean=q[passed].mean(1), dphi=dphi[passed].max(1),
@@ -1979,8 +2013,9 @@ class _Scan:
     """Verifies and refines candidates of one pass, appending to ``accepted`` ((_Verified, sigma)).
 
     With a ``trace`` list, each candidate adds a dict: ``x``, ``y`` (full-resolution pixels),
-    ``level``, ``contrast``, ``pass`` ("gray" or "colour") and ``stage``, where the scan left it:
-    "prefilter", "unverified" (past ``max_verified``), "beside a found marker", "verify: <reason>",
+    ``level``, ``contrast``, ``pass`` ("gray", "colour" or "chroma") and ``stage``, where the scan left it:
+    "prefilter: <reason>" (the first of PREFILTER_REASONS it fails), "unverified" (past ``max_verified``),
+    "beside a found marker", "verify: <reason>",
     "score" (under the pass's cut; with ``score``), "single saddle", "centre reach", "centre grey",
     "score after refinement" (the refinement failed and the score, cut by 0.7, fell under) or "kept";
     verified ones also carry ``score``, ``type`` and ``radius_px``."""
@@ -2034,8 +2069,12 @@ class _Scan:
             self.trace.append(row)
 
         if self.trace is not None:
+            why = verifier.prefilter_reasons(cand_xy, np.maximum(1.5, 1.5 * cand_scale), chat=cand_c,
+                                             level=cand_level.astype(float))
             for ci in np.nonzero(~passed)[0]:
-                mark(ci, "prefilter")
+                # "first look": stopped by the look at two rings alone, which the full tests would pass
+                # (its margins are meant to make that impossible)
+                mark(ci, "prefilter: " + (why[ci] or "first look"))
             for ci in todo[s.max_verified:]:
                 mark(ci, "unverified")
         if len(todo) > s.max_verified:

@@ -561,6 +561,64 @@ def test_prefilter_checks_sector_levels(levels, expect):
     assert bool(ver.prefilter(np.array([[80.3, 79.6]]), np.array([3.0]))[0]) is expect
 
 
+def _wedges(levels):
+    """Four blurred wedges around (80.3, 79.6) with the given grey levels (counter-clockwise from +x, edges
+    turned 0.3 rad) and a verifier over them."""
+    from cpdetect.classical import ClassicalSettings, _Levels, _Verifier
+    from cpdetect.xcorner import build_pyramid
+
+    yy, xx = np.mgrid[0:160, 0:160].astype(np.float64)
+    ang = np.mod(np.arctan2(yy - 79.6, xx - 80.3) - 0.3, 2 * np.pi)
+    img = cv2.GaussianBlur(np.choose((ang // (np.pi / 2)).astype(int), levels).astype(np.float32), (0, 0), 0.8)
+    return _Verifier(_Levels(None, 1, build_pyramid(img)), ClassicalSettings(), (160, 160))
+
+
+# the point where the wedges meet; one on the straight edge between two of them, 50 px out; one whose
+# rings leave the image
+_MEET, _EDGE, _BORDER = (80.3, 79.6), (80.3 + 50 * math.cos(0.3), 79.6 + 50 * math.sin(0.3)), (1.5, 79.6)
+
+
+@pytest.mark.parametrize("levels, at, reason", [
+    ((30, 220, 30, 220), _MEET, ""), ((30, 220, 120, 220), _MEET, "opposite sectors differ"),
+    ((30, 220, 30, 120), _MEET, "opposite sectors differ"), ((120, 128, 120, 128), _MEET, "contrast too low"),
+    ((30, 220, 30, 220), _EDGE, "not four sectors"), ((30, 220, 30, 220), _BORDER, "rings leave the image")])
+def test_prefilter_reasons_name_the_first_test_failed(levels, at, reason):
+    from cpdetect.classical import PREFILTER_REASONS
+
+    ver = _wedges(levels)
+    xy, r0 = np.array([at]), np.array([3.0])
+    assert list(ver.prefilter_reasons(xy, r0)) == [reason]
+    assert reason == "" or reason in PREFILTER_REASONS
+    assert bool(ver.prefilter(xy, r0)[0]) is (reason == "")
+    # with the candidates' X-corner contrast the candidate score is the last test (see the test below)
+    got = ver.prefilter_reasons(xy, r0, chat=np.array([18.0]), level=np.array([0.0]))
+    assert list(got) == [reason or "candidate score"]
+
+
+def test_prefilter_reasons_agree_with_the_prefilter_on_every_candidate():
+    from cpdetect.classical import PREFILTER_REASONS, ClassicalSettings, _Levels, _Verifier
+    from cpdetect.xcorner import build_pyramid, find_candidates
+
+    img, _, _, _ = tilted_scene("circle", (161.3, 118.6), 30.0, 40.0, 0.7, 0.35, seed=4, noise=4.0)
+    pyr = build_pyramid(img)
+    cands = find_candidates(pyr, 7.2, 1000)
+    s = ClassicalSettings()
+    ver = _Verifier(_Levels(None, 1, pyr), s, (img.shape[1], img.shape[0]))
+    xy = np.array([[c.x, c.y] for c in cands])
+    r0 = np.array([max(1.5, 1.5 * 2 ** c.level) for c in cands])
+    chat, level = np.array([c.contrast for c in cands]), np.array([float(c.level) for c in cands])
+    passed = ver.prefilter(xy, r0, chat=chat, level=level)
+    why = ver.prefilter_reasons(xy, r0, chat=chat, level=level)
+    assert len(cands) > 50 and 0 < passed.sum() < len(cands)  # texture saddles stopped, the marker's kept
+    assert np.array_equal(passed, why == "")
+    assert set(why[~passed]) <= set(PREFILTER_REASONS) and len(set(why[~passed])) >= 2
+    # the trace names them the same way
+    trace: list = []
+    ClassicalDetector(colour_pass=False).detect(img, trace=trace)
+    stopped = [t["stage"] for t in trace if t["stage"].startswith("prefilter")]
+    assert stopped and {st.split(": ", 1)[1] for st in stopped} <= set(PREFILTER_REASONS)
+
+
 def test_two_line_fit_finds_the_corner_of_a_polyline():
     from cpdetect.classical import _two_line_fit
 
@@ -1355,6 +1413,7 @@ def test_scan_verifies_coarse_levels_first_strongest_first_within_a_level():
     res = ClassicalDetector().detect(np.clip(img + 0.5, 0, 255).astype(np.uint8), trace=trace)
     assert len(res.detections) == 3
     gray = [t for t in trace if t["pass"] == "gray"]
-    for rows in ([t for t in gray if t["stage"] == "prefilter"], [t for t in gray if t["stage"] != "prefilter"]):
+    stopped = [t["stage"].startswith("prefilter: ") for t in gray]
+    for rows in ([t for t, st in zip(gray, stopped) if st], [t for t, st in zip(gray, stopped) if not st]):
         keys = [(-t["level"], -t["contrast"]) for t in rows]
         assert len(keys) >= 3 and keys == sorted(keys)

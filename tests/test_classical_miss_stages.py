@@ -49,7 +49,7 @@ def test_a_marker_dropped_by_the_centre_grey_test_is_named_so():
 
 def test_stage_of_takes_the_furthest_stage_and_the_commonest_reason():
     truth = {"x": 100.0, "y": 50.0, "radius_px": 20.0}  # near: within 7 px
-    t = [{"x": 101.0, "y": 50.0, "stage": "prefilter"},
+    t = [{"x": 101.0, "y": 50.0, "stage": "prefilter: weak four-sector pattern"},
          {"x": 99.0, "y": 52.0, "stage": "verify: no four-sector pattern"},
          {"x": 100.5, "y": 49.0, "stage": "verify: outline degenerate"},
          {"x": 100.0, "y": 48.0, "stage": "verify: outline degenerate"},
@@ -58,6 +58,10 @@ def test_stage_of_takes_the_furthest_stage_and_the_commonest_reason():
     t.append({"x": 103.0, "y": 55.0, "stage": "score", "score": 0.4})
     assert stages.stage_of(t, truth)["stage"] == "score"
     assert stages.stage_of(t[-2:-1], truth) == {"stage": "no candidate", "candidates": 0}
+    # stopped at the prefilter only: its commonest reason
+    pre = [{"x": 100.0, "y": 50.0 + d, "stage": "prefilter: " + r}
+           for d, r in ((0, "candidate score"), (1, "not four sectors"), (2, "candidate score"), (40, "not four sectors"))]
+    assert stages.stage_of(pre, truth) == {"stage": "prefilter: candidate score", "candidates": 3, "best_score": None}
 
 
 def test_bad_metrics_files_get_one_line_and_exit_2(tmp_path, capsys):
@@ -106,7 +110,7 @@ def test_candidates_past_the_verification_cap_are_named_unverified():
     res = ClassicalDetector(colour_pass=False, max_verified=1).detect(img, trace=capped)
     # the same candidates either way; all but the first that passed the prefilter go unverified
     assert len(capped) == len(full)
-    passed = [t for t in full if t["stage"] != "prefilter"]
+    passed = [t for t in full if not t["stage"].startswith("prefilter")]
     assert len(passed) >= 2
     assert sum(t["stage"] == "unverified" for t in capped) == len(passed) - 1
     assert res.extras["unverified"] == len(passed) - 1
