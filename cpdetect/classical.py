@@ -144,7 +144,8 @@ AXES_TOLERANCE_DEG = 12.0
 SADDLE_ORDERS = ("strongest", "alike")
 SADDLE_NEIGHBOURS = 8  # at most this many near X-corners are tested by the single-saddle test
 TAG_FIELD = "dark field all around (a tag's bit cells)"  # the outer-ring test's reason for a tag's bit corner
-# the prefilter's tests, in the order it makes them: a traced candidate it stops says the first it fails
+# the prefilter's tests (on two rings, then on eight, then the levels, then the candidate score): a traced
+# candidate it stops says the first it fails
 PREFILTER_REASONS = ("rings leave the image", "not four sectors", "weak four-sector pattern", "sector edges turn",
                      "contrast too low", "opposite sectors differ", "sectors not uniform", "candidate score")
 
@@ -957,23 +958,28 @@ class _Verifier:
         return float(np.mean(far > B - 0.3 * C)) if far.size else 1.0
 
     def prefilter(self, xy: np.ndarray, r_start: np.ndarray, q_min: float = 0.75, chat: np.ndarray | None = None,
-                  level: np.ndarray | None = None) -> np.ndarray:
+                  level: np.ndarray | None = None, why: np.ndarray | None = None) -> np.ndarray:
         """Vectorised first look at many candidates (n, 2) full-res: the fixed tests of
         :meth:`prefilter_features` and, given the candidates' X-corner contrast ``chat`` and pyramid
         ``level``, a candidate score (:func:`candidate_score`) of at least ``min_candidate_score``.
-        Returns a bool (n,)."""
-        passed, feats = self.prefilter_features(xy, r_start, q_min, chat, level)
+        Returns a bool (n,). ``why`` (n,) object array of "", when given, receives for each candidate
+        stopped the first of PREFILTER_REASONS it fails, in the order the tests are made (the look at
+        two rings first, then all eight, then the levels, then the score); "" stays where it passes."""
+        passed, feats = self.prefilter_features(xy, r_start, q_min, chat, level, why=why)
         if feats is not None and self.s.min_candidate_score > 0 and passed.any():
-            passed[passed] = candidate_score(feats) >= self.s.min_candidate_score
+            keep = candidate_score(feats) >= self.s.min_candidate_score
+            if why is not None:
+                why[np.nonzero(passed)[0][~keep]] = PREFILTER_REASONS[7]
+            passed[passed] = keep
         return passed
 
     def prefilter_features(self, xy: np.ndarray, r_start: np.ndarray, q_min: float = 0.75,
-                           chat: np.ndarray | None = None, level: np.ndarray | None = None
-                           ) -> tuple[np.ndarray, dict | None]:
+                           chat: np.ndarray | None = None, level: np.ndarray | None = None,
+                           why: np.ndarray | None = None) -> tuple[np.ndarray, dict | None]:
         """The prefilter's fixed tests on candidates (n, 2) full-res: four inner rings with a strong,
         steady second angular harmonic (the test that opens :meth:`core`) and plausible sector
         levels. Returns a bool (n,) and, given ``chat`` and ``level``, the CANDIDATE_FEATURES arrays
-        of the candidates that pass, in order (else None)."""
+        of the candidates that pass, in order (else None); ``why``: see :meth:`prefilter`."""
         if len(xy) == 0:
             return np.zeros(0, bool), None
         # the innermost and outermost ring alone first: most texture saddles fail there already, and
@@ -981,33 +987,26 @@ class _Verifier:
         # decision to the full test below, so the result is the same as without this step
         f2 = 1.08 ** np.array([0.0, 7.0])
         radii2 = r_start[:, None] * f2[None, :]
-        P2 = _nan_to_zero(self.levels.sample(
+        S2 = self.levels.sample(
             xy[:, 0, None, None] + radii2[:, :, None] * self.cos[None, None, :],
             xy[:, 1, None, None] + radii2[:, :, None] * self.sin[None, None, :],
-            (radii2 * (TWO_PI / self.N_THETA))[:, :, None]).astype(np.float64))
+            (radii2 * (TWO_PI / self.N_THETA))[:, :, None])
+        outside = np.isnan(S2).any(axis=(1, 2)) if why is not None else None
+        P2 = _nan_to_zero(S2.astype(np.float64))
         h2, q2, _ = self._second_harmonic(P2)
-        maybe = np.nonzero((q2.min(1) >= 0.95 * q_min)
-                           & (np.abs(_wrap(np.angle(h2[:, 1]) - np.angle(h2[:, 0]))) <= math.radians(27)))[0]
+        strong = q2.min(1) >= 0.95 * q_min
+        steady = np.abs(_wrap(np.angle(h2[:, 1]) - np.angle(h2[:, 0]))) <= math.radians(27)
+        maybe = np.nonzero(strong & steady)[0]
+        if why is not None:
+            _label_first(why, np.arange(len(xy)), (outside, ~strong, ~steady), PREFILTER_REASONS[:1] + PREFILTER_REASONS[2:4])
         passed = np.zeros(len(xy), bool)
         sub = (lambda a: None if a is None else np.asarray(a)[maybe])
+        sub_why = None if why is None else why[maybe]
         passed[maybe], feats = self._prefilter_rings(xy[maybe], np.asarray(r_start)[maybe], q_min, sub(chat),
-                                                     sub(level))
+                                                     sub(level), why=sub_why)
+        if why is not None:
+            why[maybe] = sub_why
         return passed, feats
-
-    def prefilter_reasons(self, xy: np.ndarray, r_start: np.ndarray, q_min: float = 0.75,
-                          chat: np.ndarray | None = None, level: np.ndarray | None = None) -> np.ndarray:
-        """Why :meth:`prefilter` stops each candidate (n, 2) full-res: the first of PREFILTER_REASONS
-        whose test it fails, or "" where it passes them all (object array (n,)). For traces only: it
-        makes the full tests on every candidate, without the first look at two rings (whose margins
-        leave each decision to the full tests), so it costs several times the prefilter."""
-        why = np.full(len(xy), "", object)
-        if len(xy) == 0:
-            return why
-        passed, feats = self._prefilter_rings(xy, np.asarray(r_start, float), q_min, chat, level, why=why)
-        if feats is not None and self.s.min_candidate_score > 0 and passed.any():
-            low = candidate_score(feats) < self.s.min_candidate_score
-            why[np.nonzero(passed)[0][low]] = PREFILTER_REASONS[7]
-        return why
 
     def _second_harmonic(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Rings P (..., N_THETA) -> their second angular harmonic h2, its strength q (sqrt 2 |h2| over
@@ -2048,9 +2047,11 @@ class _Scan:
         cand_xy = np.column_stack([np.array([c.x for c in cands], float), np.array([c.y for c in cands], float)])
         cand_xy = (cand_xy + 0.5) * k - 0.5  # (n, 2), also for n = 0
         cand_scale = k * 2.0 ** cand_level
-        # one vectorised look at every candidate's inner rings before the per-candidate work
+        # one vectorised look at every candidate's inner rings before the per-candidate work (traced:
+        # with the test each one stopped fails first)
+        why = np.full(len(cands), "", object) if self.trace is not None else None
         passed = verifier.prefilter(cand_xy, np.maximum(1.5, 1.5 * cand_scale), chat=cand_c,
-                                    level=cand_level.astype(float))
+                                    level=cand_level.astype(float), why=why)
         self.prefiltered += int(passed.sum())
         # candidates the prefilter stopped count as rejected whether or not a marker found later
         # covers them (looking that up candidate by candidate in Python cost 0.07 s on 45 MP images)
@@ -2069,12 +2070,8 @@ class _Scan:
             self.trace.append(row)
 
         if self.trace is not None:
-            why = verifier.prefilter_reasons(cand_xy, np.maximum(1.5, 1.5 * cand_scale), chat=cand_c,
-                                             level=cand_level.astype(float))
             for ci in np.nonzero(~passed)[0]:
-                # "first look": stopped by the look at two rings alone, which the full tests would pass
-                # (its margins are meant to make that impossible)
-                mark(ci, "prefilter: " + (why[ci] or "first look"))
+                mark(ci, "prefilter: " + why[ci])
             for ci in todo[s.max_verified:]:
                 mark(ci, "unverified")
         if len(todo) > s.max_verified:

@@ -573,29 +573,37 @@ def _wedges(levels):
     return _Verifier(_Levels(None, 1, build_pyramid(img)), ClassicalSettings(), (160, 160))
 
 
-# the point where the wedges meet; one on the straight edge between two of them, 50 px out; one whose
-# rings leave the image
+def _why(ver, xy, r0, **kw):
+    """The prefilter's verdicts and reasons (see _Verifier.prefilter) for candidates xy."""
+    why = np.full(len(xy), "", object)
+    return ver.prefilter(xy, r0, why=why, **kw), why
+
+
+# the point where the wedges meet; one on the straight edge between two of them, 50 px out (no second
+# harmonic there: the look at two rings stops it as weak); one whose rings leave the image
 _MEET, _EDGE, _BORDER = (80.3, 79.6), (80.3 + 50 * math.cos(0.3), 79.6 + 50 * math.sin(0.3)), (1.5, 79.6)
 
 
 @pytest.mark.parametrize("levels, at, reason", [
     ((30, 220, 30, 220), _MEET, ""), ((30, 220, 120, 220), _MEET, "opposite sectors differ"),
     ((30, 220, 30, 120), _MEET, "opposite sectors differ"), ((120, 128, 120, 128), _MEET, "contrast too low"),
-    ((30, 220, 30, 220), _EDGE, "not four sectors"), ((30, 220, 30, 220), _BORDER, "rings leave the image")])
+    ((30, 220, 30, 220), _EDGE, "weak four-sector pattern"), ((30, 220, 30, 220), _BORDER, "rings leave the image")])
 def test_prefilter_reasons_name_the_first_test_failed(levels, at, reason):
     from cpdetect.classical import PREFILTER_REASONS
 
     ver = _wedges(levels)
     xy, r0 = np.array([at]), np.array([3.0])
-    assert list(ver.prefilter_reasons(xy, r0)) == [reason]
+    passed, why = _why(ver, xy, r0)
+    assert list(why) == [reason] and bool(passed[0]) is (reason == "")
     assert reason == "" or reason in PREFILTER_REASONS
-    assert bool(ver.prefilter(xy, r0)[0]) is (reason == "")
-    # with the candidates' X-corner contrast the candidate score is the last test (see the test below)
-    got = ver.prefilter_reasons(xy, r0, chat=np.array([18.0]), level=np.array([0.0]))
-    assert list(got) == [reason or "candidate score"]
+    assert np.array_equal(ver.prefilter(xy, r0), passed)  # asking why changes nothing
+    # with the candidates' X-corner contrast the candidate score is the last test (a tenth of the sector
+    # contrast: see test_candidate_score_spares_verification_of_weak_saddles_not_of_markers)
+    passed, why = _why(ver, xy, r0, chat=np.array([18.0]), level=np.array([0.0]))
+    assert list(why) == [reason or "candidate score"] and not passed[0]
 
 
-def test_prefilter_reasons_agree_with_the_prefilter_on_every_candidate():
+def test_prefilter_reasons_cover_every_candidate_stopped():
     from cpdetect.classical import PREFILTER_REASONS, ClassicalSettings, _Levels, _Verifier
     from cpdetect.xcorner import build_pyramid, find_candidates
 
@@ -607,10 +615,10 @@ def test_prefilter_reasons_agree_with_the_prefilter_on_every_candidate():
     xy = np.array([[c.x, c.y] for c in cands])
     r0 = np.array([max(1.5, 1.5 * 2 ** c.level) for c in cands])
     chat, level = np.array([c.contrast for c in cands]), np.array([float(c.level) for c in cands])
-    passed = ver.prefilter(xy, r0, chat=chat, level=level)
-    why = ver.prefilter_reasons(xy, r0, chat=chat, level=level)
+    passed, why = _why(ver, xy, r0, chat=chat, level=level)
     assert len(cands) > 50 and 0 < passed.sum() < len(cands)  # texture saddles stopped, the marker's kept
-    assert np.array_equal(passed, why == "")
+    assert np.array_equal(ver.prefilter(xy, r0, chat=chat, level=level), passed)
+    assert np.array_equal(passed, why == "")  # every candidate stopped has its reason
     assert set(why[~passed]) <= set(PREFILTER_REASONS) and len(set(why[~passed])) >= 2
     # the trace names them the same way
     trace: list = []
