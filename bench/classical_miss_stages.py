@@ -10,7 +10,7 @@ within max(3 px, 0.35 radius) of its true centre:
 
 - ``no candidate``: no X-corner candidate there (too weak, past the per-level cap, or none);
 - ``prefilter: <reason>``: every candidate there was stopped by the prefilter (inner rings, candidate
-  score), the reason the one its candidates failed first most often (``PREFILTER_REASONS`` of
+  score), with the test its candidates failed first most often (``PREFILTER_REASONS`` of
   :mod:`cpdetect.classical`: rings leaving the image, not four sectors, a weak or turning four-sector
   pattern, low contrast, opposite sectors unlike, sectors not uniform, the candidate score);
 - ``unverified``: past ``max_verified``;

@@ -998,7 +998,8 @@ class _Verifier:
         steady = np.abs(_wrap(np.angle(h2[:, 1]) - np.angle(h2[:, 0]))) <= math.radians(27)
         maybe = np.nonzero(strong & steady)[0]
         if why is not None:
-            _label_first(why, np.arange(len(xy)), (outside, ~strong, ~steady), PREFILTER_REASONS[:1] + PREFILTER_REASONS[2:4])
+            _label_first(why, np.arange(len(xy)), (outside, ~strong, ~steady),
+                         PREFILTER_REASONS[:1] + PREFILTER_REASONS[2:4])
         passed = np.zeros(len(xy), bool)
         sub = (lambda a: None if a is None else np.asarray(a)[maybe])
         sub_why = None if why is None else why[maybe]
@@ -1040,17 +1041,17 @@ class _Verifier:
         sign = T > 0
         change = sign != np.roll(sign, 1, axis=1)
         four = change.sum(1) == 4
-        passed = ok & four & (q.min(1) >= q_min) & (dphi.max(1) <= math.radians(25))
+        strong, steady = q.min(1) >= q_min, dphi.max(1) <= math.radians(25)
+        passed = ok & four & strong & steady
         if why is not None:
-            _label_first(why, np.arange(len(xy)), (~ok, ~four, ~(q.min(1) >= q_min),
-                                                    ~(dphi.max(1) <= math.radians(25))), PREFILTER_REASONS[:4])
+            _label_first(why, np.arange(len(xy)), (~ok, ~four, ~strong, ~steady), PREFILTER_REASONS[:4])
         if not passed.any():
             return passed, ({k: np.zeros(0) for k in CANDIDATE_FEATURES} if want else None)
         lv = self._sector_levels(P[passed], change[passed])
-        plausible = (lv["C"] >= 0.7 * self.s.min_contrast) & (lv["opp"] <= 0.3) & (lv["spread"] <= 0.25)
+        enough, alike, uniform = lv["C"] >= 0.7 * self.s.min_contrast, lv["opp"] <= 0.3, lv["spread"] <= 0.25
+        plausible = enough & alike & uniform
         if why is not None:
-            _label_first(why, np.nonzero(passed)[0], (~(lv["C"] >= 0.7 * self.s.min_contrast), ~(lv["opp"] <= 0.3),
-                                                       ~(lv["spread"] <= 0.25)), PREFILTER_REASONS[4:7])
+            _label_first(why, np.nonzero(passed)[0], (~enough, ~alike, ~uniform), PREFILTER_REASONS[4:7])
         feats = None
         if want:
             feats = dict(qmin=q[passed].min(1), qmean=q[passed].mean(1), dphi=dphi[passed].max(1),

@@ -546,31 +546,23 @@ def test_xcorner_seeds_find_the_marker_centre(radius):
     assert len(near) == 1 and np.hypot(near[0][0] - c[0], near[0][1] - c[1]) < max(1.5, 0.08 * r)
 
 
-@pytest.mark.parametrize("levels, expect", [((30, 220, 30, 220), True), ((30, 220, 120, 220), False),
-                                            ((30, 220, 30, 120), False), ((120, 128, 120, 128), False)])
-def test_prefilter_checks_sector_levels(levels, expect):
-    # four wedges around (80.3, 79.6) with the given grey levels (counter-clockwise from +x)
-    from cpdetect.classical import ClassicalSettings, _Levels, _Verifier
-    from cpdetect.xcorner import build_pyramid
-
-    yy, xx = np.mgrid[0:160, 0:160].astype(np.float64)
-    ang = np.mod(np.arctan2(yy - 79.6, xx - 80.3) - 0.3, 2 * np.pi)
-    img = np.choose((ang // (np.pi / 2)).astype(int), levels).astype(np.float32)
-    img = cv2.GaussianBlur(img, (0, 0), 0.8)
-    ver = _Verifier(_Levels(None, 1, build_pyramid(img)), ClassicalSettings(), (160, 160))
-    assert bool(ver.prefilter(np.array([[80.3, 79.6]]), np.array([3.0]))[0]) is expect
-
-
-def _wedges(levels):
+def _wedges(levels, settings=None):
     """Four blurred wedges around (80.3, 79.6) with the given grey levels (counter-clockwise from +x, edges
-    turned 0.3 rad) and a verifier over them."""
+    turned 0.3 rad) and a verifier over them (``settings``: ClassicalSettings, default ones if None)."""
     from cpdetect.classical import ClassicalSettings, _Levels, _Verifier
     from cpdetect.xcorner import build_pyramid
 
     yy, xx = np.mgrid[0:160, 0:160].astype(np.float64)
     ang = np.mod(np.arctan2(yy - 79.6, xx - 80.3) - 0.3, 2 * np.pi)
     img = cv2.GaussianBlur(np.choose((ang // (np.pi / 2)).astype(int), levels).astype(np.float32), (0, 0), 0.8)
-    return _Verifier(_Levels(None, 1, build_pyramid(img)), ClassicalSettings(), (160, 160))
+    return _Verifier(_Levels(None, 1, build_pyramid(img)), settings or ClassicalSettings(), (160, 160))
+
+
+@pytest.mark.parametrize("levels, expect", [((30, 220, 30, 220), True), ((30, 220, 120, 220), False),
+                                            ((30, 220, 30, 120), False), ((120, 128, 120, 128), False)])
+def test_prefilter_checks_sector_levels(levels, expect):
+    ver = _wedges(levels)
+    assert bool(ver.prefilter(np.array([[80.3, 79.6]]), np.array([3.0]))[0]) is expect
 
 
 def _why(ver, xy, r0, **kw):
@@ -876,16 +868,11 @@ def test_sector_on_a_background_of_its_own_level(det, marker_type):
 
 
 def test_candidate_score_spares_verification_of_weak_saddles_not_of_markers():
-    from cpdetect.classical import CANDIDATE_FEATURES, ClassicalSettings, _Levels, _Verifier, candidate_score
-    from cpdetect.xcorner import build_pyramid
+    from cpdetect.classical import CANDIDATE_FEATURES, ClassicalSettings, candidate_score
 
     # a sharp marker-like X-corner whose Hessian contrast matches its sector contrast scores high; the
     # same rings with a tenth of that Hessian contrast (a blurred texture saddle) score low
-    yy, xx = np.mgrid[0:160, 0:160].astype(np.float64)
-    ang = np.mod(np.arctan2(yy - 79.6, xx - 80.3) - 0.3, 2 * np.pi)
-    img = cv2.GaussianBlur(np.choose((ang // (np.pi / 2)).astype(int), (30, 220, 30, 220)).astype(np.float32),
-                           (0, 0), 0.8)
-    ver = _Verifier(_Levels(None, 1, build_pyramid(img)), ClassicalSettings(min_candidate_score=0.0), (160, 160))
+    ver = _wedges((30, 220, 30, 220), ClassicalSettings(min_candidate_score=0.0))
     xy, r0 = np.array([[80.3, 79.6]]), np.array([3.0])
     assert ver.prefilter(xy, r0, chat=np.array([180.0]), level=np.array([0.0]))[0]
     _, feats = ver.prefilter_features(xy, r0, chat=np.array([180.0]), level=np.array([0.0]))
@@ -894,8 +881,7 @@ def test_candidate_score_spares_verification_of_weak_saddles_not_of_markers():
     strong = float(candidate_score(feats)[0])
     weak = float(candidate_score({**feats, "log_chat": feats["log_chat"] - np.log(10.0)})[0])
     assert 0.0 <= weak < ClassicalSettings().min_candidate_score < strong <= 1.0
-    cut = ClassicalSettings(min_candidate_score=0.5 * (weak + strong))
-    ver = _Verifier(_Levels(None, 1, build_pyramid(img)), cut, (160, 160))
+    ver = _wedges((30, 220, 30, 220), ClassicalSettings(min_candidate_score=0.5 * (weak + strong)))
     assert ver.prefilter(xy, r0, chat=np.array([180.0]), level=np.array([0.0]))[0]
     assert not ver.prefilter(xy, r0, chat=np.array([18.0]), level=np.array([0.0]))[0]
     assert ver.prefilter(xy, r0)[0]  # without the candidates' contrast: the fixed tests only
