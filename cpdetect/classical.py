@@ -49,7 +49,9 @@ Pipeline for one image:
    contrast is most like the candidate's are tried (``saddle_order``): under a shadow across a
    checkerboard, the strongest ones lie in the sun and fail the level comparison; eight distinct
    corners, the copies of one corner on other pyramid levels tried too but taking no slot
-   (``saddle_distinct_frac``, stop 68). Each is looked at
+   (``saddle_distinct_frac``, stop 68); "like the candidate's" meaning like the strongest copy of
+   the verified corner on the neighbours' levels (``saddle_alike_to``, stop 73: a large marker is
+   often verified from a coarse level, where its corner is weaker than they show it). Each is looked at
    on four small rings from at least 3 px (``saddle_ring_min_px``): closer in, blur pulls a small
    checkerboard's sector means short of the candidate's levels.
 4. **Type** in the frame of the checker lines (:func:`type_residuals`): a sector's boundary points,
@@ -142,6 +144,7 @@ RETRY_RING_FRACS = (0.12, 0.06, 0.25)
 # count as the same checker's grid in the single-saddle test (see ClassicalSettings.saddle_axes)
 AXES_TOLERANCE_DEG = 12.0
 SADDLE_ORDERS = ("strongest", "alike")
+SADDLE_ALIKE_TO = ("candidate", "copies")
 SADDLE_NEIGHBOURS = 8  # at most this many near X-corners are tested by the single-saddle test
 TAG_FIELD = "dark field all around (a tag's bit cells)"  # the outer-ring test's reason for a tag's bit corner
 # the prefilter's tests (on two rings, then on eight, then the levels, then the candidate score): a traced
@@ -281,6 +284,21 @@ class ClassicalSettings:
         of tilt), 13 -> 13 false, types and centres the same; on the seen 45 MP sets 36400-36700 8 -> 6
         false (two corners of checkerboards whose outer corner, found on four levels, had taken half
         the slots), on the seen 640 sets 12 -> 11.
+    saddle_alike_to: the contrast the "alike" order of the single-saddle test ranks neighbours
+        against (:func:`saddle_alike_to`): "candidate" (that of the candidate that was verified) or
+        "copies" (the highest contrast among the candidates within 0.2 radius of the verified centre
+        on the neighbours' levels, cells at most a quarter radius: the same corner measured like its
+        neighbours). A large marker is often verified from a coarse level, where its corner is weaker
+        than finer levels show it and its neighbours: by "candidate" the texture's weak saddles then
+        take the eight slots before a board's corners (45 MP 38900/17). Which neighbours qualify
+        (contrast at least 0.9 of the candidate's) is the same either way: measured against the
+        copies, a board's corners weaker than its edge corner's strongest copy dropped out (37400/6).
+        "copies" is the default since 2026-12-03 (stop 73), by a rule written before its fresh sets
+        were generated (default if, over 640 x 480 seeds 39600-39800 and 45 MP seeds 39900-40100, at
+        most 1 true marker fewer, no more false ones, at most 1 more typed wrong, centre means at most
+        0.002 px worse, and on the 29 seen sets more false markers removed than true ones lost): on
+        the seen sets 8,933 -> 8,933 markers found, 89 -> 87 false (two checkerboard corners), typed
+        wrong 113 -> 113; on the six fresh sets every count and centre stayed the same.
     saddle_ring_min_px: the single-saddle test's four small rings start at max(this, 0.15 radius)
         pixels around each neighbour (and around the centre, for its axes). Under 1-2 px of blur,
         rings from 1.5 px see a small checkerboard's corners with sector means short of the levels its
@@ -322,6 +340,7 @@ class ClassicalSettings:
     saddle_order: str = "alike"
     saddle_ring_min_px: float = 3.0
     saddle_distinct_frac: float | None = 0.1
+    saddle_alike_to: str = "copies"
 
     def __post_init__(self) -> None:
         if not self.min_radius_px > 0:
@@ -366,6 +385,9 @@ class ClassicalSettings:
             raise ValueError("saddle_distinct_frac must be in (0, 0.5] (of the radius) or null (off)")
         if self.saddle_order not in SADDLE_ORDERS:
             raise ValueError(f"saddle_order must be one of {', '.join(SADDLE_ORDERS)}, got {self.saddle_order!r}")
+        if self.saddle_alike_to not in SADDLE_ALIKE_TO:
+            raise ValueError(f"saddle_alike_to must be one of {', '.join(SADDLE_ALIKE_TO)}, "
+                             f"got {self.saddle_alike_to!r}")
         if not 0.0 <= self.outline_window <= 2.0:
             raise ValueError("outline_window must be in [0, 2] (0: off)")
 
@@ -2103,15 +2125,17 @@ class _Scan:
             # round outline no checker continues, was tried on 2026-11-27 and reverted: 3 more markers on
             # ten train-split dev sets, but on a test set two checker corners typed circle got through
             dn = np.hypot(cand_xy[:, 0] - v.x, cand_xy[:, 1] - v.y)
+            fine = cand_scale <= 0.25 * v.radius
             near = np.nonzero((dn > 0.4 * v.radius) & (dn < 1.7 * v.radius)
-                              & (cand_c >= 0.9 * c.contrast) & (cand_scale <= 0.25 * v.radius))[0]
+                              & (cand_c >= 0.9 * c.contrast) & fine)[0]
+            alike_to = saddle_alike_to(cand_c, dn, fine, v.radius, c.contrast, s.saddle_alike_to)
             r_small = max(s.saddle_ring_min_px, 0.15 * v.radius)
             axes = verifier.xcorner_axes(v.x, v.y, r_small) if s.saddle_axes and near.size else None
             # a marker found already is an X-corner of those levels whatever its axes: from a junction
             # of its sector edges with its outline (three regions) its centre shows as a neighbour
             found = [a for a, _ in accepted if 0.4 * v.radius < math.hypot(a.x - v.x, a.y - v.y) < 1.7 * v.radius]
             if any(verifier.is_xcorner(cand_xy[j, 0], cand_xy[j, 1], r_small, v.levels, axes=axes)
-                   for j in saddle_neighbours(near, cand_c, c.contrast, s.saddle_order, cand_xy,
+                   for j in saddle_neighbours(near, cand_c, alike_to, s.saddle_order, cand_xy,
                                               (s.saddle_distinct_frac or 0.0) * v.radius)) \
                     or any(verifier.is_xcorner(a.x, a.y, r_small, v.levels) for a in found):
                 mark(ci, "single saddle", v)
@@ -2157,6 +2181,20 @@ class _Scan:
             mark(ci, "kept", v)
             accepted.append((v, sigma))
         return rejected
+
+
+def saddle_alike_to(contrast: np.ndarray, dist: np.ndarray, fine: np.ndarray, radius: float,
+                    candidate: float, mode: str) -> float:
+    """The contrast (c_hat) that the single-saddle test's "alike" order ranks a verified marker's
+    neighbours against. ``contrast``, ``dist`` (pixels from the verified centre) and ``fine`` (cell
+    size at most a quarter ``radius``: the levels the neighbours come from) are per candidate of the
+    pass; ``candidate``: the verified candidate's own. "candidate" returns that; "copies" the highest
+    contrast among the fine candidates within 0.2 ``radius`` of the centre (the same corner measured
+    on the neighbours' levels), else ``candidate``."""
+    if mode == "candidate":
+        return candidate
+    copies = fine & (dist <= 0.2 * radius)
+    return float(contrast[copies].max()) if copies.any() else candidate
 
 
 def saddle_neighbours(near: np.ndarray, contrast: np.ndarray, own: float, order: str,
