@@ -36,7 +36,10 @@ Pipeline for one image:
    ones 1 / 6 / 10 / 13 -> 2 / 5 / 10 / 13). A square outline lying in a field at the dark sectors'
    level all around is taken for two bright bit cells of a tag and rejected; a circle or diagonal
    one is not: bit cells are squares, and such a marker without margin on a dark wall is common
-   (same sets: +1 / +1 / +4 / +2 markers, no false one). Grout and mullion crosses fail the
+   (same sets: +1 / +1 / +4 / +2 markers, no false one). A marker typed square whose twelve
+   surrounding cells (its checker's grid carried on by one cell, :mod:`cpdetect.tag_grid`) are all
+   uniform at its two levels, three or more of each, is taken for a corner between a tag's bits
+   (``tag_grid_min_each``, stop 73). Grout and mullion crosses fail the
    sector test (thin lines, not solid wedges); edges, text and texture fail the core or the
    outline. The features
    measured on the way (core, outline fit, outer ring) give the **score**, P(marker) from
@@ -115,6 +118,7 @@ import numpy as np
 from .centre_reach import CENTRE_REACH_MIN, centre_level_offset, centre_reach, edge_blur_px
 from .detector import as_gray_uint8, settings_from_dataclass
 from .imageio import chroma_image, paint_image
+from .tag_grid import grid_cells, is_tag_grid
 from .refine import METHODS, refine_center, refine_center_coarse_to_fine, refine_in_outline
 from .types import DetectionResult, MarkerDetection
 from .xcorner import build_pyramid, find_candidates
@@ -299,6 +303,21 @@ class ClassicalSettings:
         0.002 px worse, and on the 29 seen sets more false markers removed than true ones lost): on
         the seen sets 8,933 -> 8,933 markers found, 89 -> 87 false (two checkerboard corners), typed
         wrong 113 -> 113; on the six fresh sets every count and centre stayed the same.
+    tag_grid_min_each: with a value, a marker typed square is dropped where the twelve cells its
+        checker's grid would continue into (:func:`cpdetect.tag_grid.grid_cells`, one cell around the
+        2 x 2 under the outline's perspective) are all uniform at its two levels, at least this many
+        of each (:func:`cpdetect.tag_grid.is_tag_grid`): the X-corner between a tag's bit cells, whose
+        neighbours are bits too (a printed marker's are margin or background). None: off. 3 is the
+        default since 2026-12-03 (stop 73), by a rule written before its fresh sets were generated
+        (default if, over 45 MP seeds 40200-40500 and 640 x 480 seeds 40600-40800, at most 1 true
+        marker fewer, at least 1 false one fewer, no more typed wrong, centre means at most 0.002 px
+        worse): 1,953 -> 1,953 markers found, 13 -> 12 false (a tag's bit corner on 40300), types and
+        centres the same. On the 22 seen sets it was chosen on (accepted detections) it removed 4 of
+        52 false markers (three tag bit corners, one pair of dark blobs) and 0 of 4,209 true ones;
+        at 2 of each, 5 false and 1 true (a square with a grey margin beside a dark window). The
+        cell tolerances were tightened after that result (:data:`cpdetect.tag_grid.LEVEL_TOLERANCE`),
+        which can only call fewer tags: the fresh sets gave the same figures again, and the pair of
+        blobs is no longer taken for one.
     saddle_ring_min_px: the single-saddle test's four small rings start at max(this, 0.15 radius)
         pixels around each neighbour (and around the centre, for its axes). Under 1-2 px of blur,
         rings from 1.5 px see a small checkerboard's corners with sector means short of the levels its
@@ -341,6 +360,7 @@ class ClassicalSettings:
     saddle_ring_min_px: float = 3.0
     saddle_distinct_frac: float | None = 0.1
     saddle_alike_to: str = "copies"
+    tag_grid_min_each: int | None = 3
 
     def __post_init__(self) -> None:
         if not self.min_radius_px > 0:
@@ -385,6 +405,10 @@ class ClassicalSettings:
             raise ValueError("saddle_distinct_frac must be in (0, 0.5] (of the radius) or null (off)")
         if self.saddle_order not in SADDLE_ORDERS:
             raise ValueError(f"saddle_order must be one of {', '.join(SADDLE_ORDERS)}, got {self.saddle_order!r}")
+        if self.tag_grid_min_each is not None and not (isinstance(self.tag_grid_min_each, int)
+                                                       and not isinstance(self.tag_grid_min_each, bool)
+                                                       and 1 <= self.tag_grid_min_each <= 6):
+            raise ValueError(f"tag_grid_min_each must be an integer in [1, 6] or null (off), got {self.tag_grid_min_each!r}")
         if self.saddle_alike_to not in SADDLE_ALIKE_TO:
             raise ValueError(f"saddle_alike_to must be one of {', '.join(SADDLE_ALIKE_TO)}, "
                              f"got {self.saddle_alike_to!r}")
@@ -2039,7 +2063,8 @@ class _Scan:
     "prefilter: <reason>" (the first of PREFILTER_REASONS it fails), "unverified" (past ``max_verified``),
     "beside a found marker", "verify: <reason>",
     "score" (under the pass's cut; with ``score``), "single saddle", "centre reach", "centre grey",
-    "score after refinement" (the refinement failed and the score, cut by 0.7, fell under) or "kept";
+    "score after refinement" (the refinement failed and the score, cut by 0.7, fell under), "tag grid"
+    (``tag_grid_min_each``) or "kept";
     verified ones also carry ``score``, ``type`` and ``radius_px``."""
 
     def __init__(self, gray: np.ndarray, k: int, settings: ClassicalSettings, accepted: list,
@@ -2177,6 +2202,11 @@ class _Scan:
                 v.score *= 0.7
             if v.score < min_score:
                 mark(ci, "score after refinement", v)
+                continue
+            if s.tag_grid_min_each is not None and v.type == "square" and is_tag_grid(
+                    grid_cells(gray, v.outline, v.x, v.y, v.levels), s.tag_grid_min_each):
+                mark(ci, "tag grid", v)
+                rejected += 1
                 continue
             mark(ci, "kept", v)
             accepted.append((v, sigma))
