@@ -118,8 +118,8 @@ import numpy as np
 from .centre_reach import CENTRE_REACH_MIN, centre_level_offset, centre_reach, edge_blur_px
 from .detector import as_gray_uint8, settings_from_dataclass
 from .imageio import chroma_image, paint_image
-from .tag_grid import grid_cells, is_tag_grid
 from .refine import METHODS, refine_center, refine_center_coarse_to_fine, refine_in_outline
+from .tag_grid import grid_cells, is_tag_grid
 from .types import DetectionResult, MarkerDetection
 from .xcorner import build_pyramid, find_candidates
 

@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 # the unit square the outline's four corners are mapped from, and the twelve cells around the
-# middle 2 x 2 of the 4 x 4 block over [-2, 2]^2 (lower-left corners, unit size)
+# middle 2 x 2 of the 4 x 4 block over [-2, 2]^2 (each by its corner of least u and v, unit size)
 _UNIT = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
 _CELLS = [(i, j) for i in range(-2, 2) for j in range(-2, 2) if not (i in (-1, 0) and j in (-1, 0))]
 _GRID = np.linspace(0.2, 0.8, 5)  # 5 x 5 samples in the middle 60 % of a cell: clear of its edges' blur

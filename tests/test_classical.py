@@ -1443,19 +1443,16 @@ def test_a_board_corner_verified_from_a_coarse_level_meets_its_own_board(tmp_pat
     # eight saddles of the gravel around (c_hat ~40) took the single-saddle test's slots and the
     # corner was kept as a square (score 0.74); ranked against its copies (the default since stop 73),
     # the board's corners come first
-    from cpdetect.backgrounds import BackgroundLibrary, list_backgrounds
-    from cpdetect.synth_images import SynthImageOptions, _encode, generate_image
+    from photo_helpers import write_generated_jpeg
 
-    opt = SynthImageOptions(width=8192, height=5460, radius_min_px=32, split="test")
-    sample = generate_image(17, 38900, opt, BackgroundLibrary(list_backgrounds("test")))
     path = tmp_path / "board.jpg"
-    path.write_bytes(_encode(sample.image, "jpg", sample.jpeg_quality))
+    markers = write_generated_jpeg(path, 17, 38900, width=8192, height=5460, radius_min_px=32, split="test")
     corner = (1446.5, 4217.6)
 
     def at_corner(dets):
         return [d for d in dets if math.hypot(d.x - corner[0], d.y - corner[1]) < 10]
 
-    truth = [(m.x, m.y) for m in sample.markers]
+    truth = [(m.x, m.y) for m in markers]
     for settings, kept in (({"saddle_alike_to": "candidate"}, 1), ({"saddle_alike_to": "copies"}, 0), ({}, 0)):
         dets = ClassicalDetector(**settings).detect(path).detections
         assert len(at_corner(dets)) == kept

@@ -121,16 +121,14 @@ def test_the_detector_drops_a_tag_bit_corner_by_its_grid(tmp_path):
     # image 22 of the 45 MP test-split set of seed 39900 (`--size 8192x5460 --radius-min 32`): the
     # X-corner between bit cells of a large tag kept as a square (radius 60 px, score 0.75); its
     # twelve surrounding cells are bits, 8 dark and 4 bright, every one uniform
-    from cpdetect.backgrounds import BackgroundLibrary, list_backgrounds
-    from cpdetect.classical import ClassicalDetector
-    from cpdetect.synth_images import SynthImageOptions, _encode, generate_image
+    from photo_helpers import write_generated_jpeg
 
-    opt = SynthImageOptions(width=8192, height=5460, radius_min_px=32, split="test")
-    sample = generate_image(22, 39900, opt, BackgroundLibrary(list_backgrounds("test")))
+    from cpdetect.classical import ClassicalDetector
+
     path = tmp_path / "tag.jpg"
-    path.write_bytes(_encode(sample.image, "jpg", sample.jpeg_quality))
+    markers = write_generated_jpeg(path, 22, 39900, width=8192, height=5460, radius_min_px=32, split="test")
     corner = (4747.8, 1311.8)
-    truth = [(m.x, m.y) for m in sample.markers]
+    truth = [(m.x, m.y) for m in markers]
 
     def split(dets):
         at = [d for d in dets if math.hypot(d.x - corner[0], d.y - corner[1]) < 10]
