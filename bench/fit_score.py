@@ -125,7 +125,7 @@ def _verified_rows_of(folder: str) -> list[dict]:
     saved = C._Verifier.verify, C.marker_score, C.LINE_FRAME_MIN_SCORE, C._type_of
     C._Verifier.verify, C.marker_score, C.LINE_FRAME_MIN_SCORE, C._type_of = spy, (lambda feats, name=None: 1.0), 0.0, types_spy
     try:
-        det = C.ClassicalDetector(min_score=0.0, colour_min_score=0.0)
+        det = C.ClassicalDetector(min_score=0.0, colour_min_score=0.0, early_score_cut=0.0)
         if not (Path(folder) / "markers.json").is_file():
             raise SystemExit(f"{folder}: no markers.json (make it with cpdetect synth images)")
         ds = train_split_dataset(folder, 0, 0, "cpdetect_fit_")  # checks that its backgrounds are train-split

@@ -46,6 +46,8 @@ def test_installed_package_has_its_data_and_runs_from_elsewhere(installed):
             "from cpdetect.marker_type import type_model; from learned.adapter import MODEL_SCORE_FILE; "
             "assert type_model().classes == ('circle', 'diagonal', 'square'); "
             "assert score_model(MODEL_SCORE_FILE).features == score_model().features; "
+            "from cpdetect.classical import EARLY_FEATURES, early_model; "
+            "assert early_model().features == EARLY_FEATURES; "
             "print(n)")
     out = subprocess.run([str(venv / "bin" / "python"), "-c", code], cwd=elsewhere, check=True,
                          capture_output=True, text=True).stdout
