@@ -72,10 +72,11 @@ def _early_rows_of(folder: str, limit: int | None) -> list[dict]:
     orig = C._Verifier.verify
 
     def spy(self, *a):
-        self.last_early = None
+        self.early_inputs = None
         r = orig(self, *a)
-        if self.last_early is not None:
-            rows.append(dict(self.last_early, score=-1.0 if isinstance(r, str) else float(r.score), file=cur[0]))
+        early = self.last_early()
+        if early is not None:
+            rows.append(dict(early, score=-1.0 if isinstance(r, str) else float(r.score), file=cur[0]))
         return r
 
     C._Verifier.verify = spy

@@ -1027,7 +1027,13 @@ class _Verifier:
         self.type_fit_min_e_rel = TYPE_FIT_MIN_E_REL
         # candidates whose early score is under this skip the rest of the verification (0: none)
         self.early_cut = settings.early_score_cut
-        self.last_early: dict | None = None  # the early features of the last verification that got so far
+        # what the early features of the last verification that got so far are made from (they are
+        # worked out only where asked for: early_cut > 0, or bench/fit_early_score.py)
+        self.early_inputs: tuple | None = None
+
+    def last_early(self) -> dict | None:
+        """EARLY_FEATURES of the last verification that reached the early score, or None."""
+        return None if self.early_inputs is None else _early_features(*self.early_inputs)
 
     def polar(self, x: float, y: float, radii: np.ndarray, spacing: np.ndarray) -> np.ndarray:
         """(n_radii, N_THETA) samples on rings around (x, y) (full-res pixels)."""
@@ -1467,8 +1473,8 @@ class _Verifier:
         # the stronger polarity first; the other when the first fails or fits poorly (a sector on a
         # background of its own level has no boundary, and the ray runs on to some far edge)
         core_r = float(core["radii"][core["core_end"]])
-        self.last_early = early = _early_features(core, rough, core_r, r_start)
-        if self.early_cut > 0.0 and early_score(early) < self.early_cut:
+        self.early_inputs = (core, rough, core_r, r_start)
+        if self.early_cut > 0.0 and early_score(self.last_early()) < self.early_cut:
             return EARLY_REASON
         rough.sort(key=lambda t: -t[0])
         fits: list = []

@@ -17,6 +17,7 @@ from cpdetect.markers import (MarkerSpec, frontal_homography, plane_homography, 
 from cpdetect.types import MARKER_TYPES
 
 from detector_contract import DetectorContract, marker_image, textured_background
+from photo_helpers import generated_photo, write_generated_jpeg
 
 
 class TestClassicalContract(DetectorContract):
@@ -1041,17 +1042,6 @@ def test_an_outline_of_impossible_size_does_not_win():
     assert len(near) == 1 and abs(near[0].radius_px - truth.radius_px) < 0.15 * truth.radius_px
 
 
-def generated_photo(index: int, seed: int, split: str = "train"):
-    """Image ``index`` of the set ``cpdetect synth images --seed SEED --split SPLIT`` writes (decoded
-    from the same JPEG bytes) and its true markers."""
-    from cpdetect.backgrounds import BackgroundLibrary, list_backgrounds
-    from cpdetect.synth_images import SynthImageOptions, _encode, generate_image
-
-    sample = generate_image(index, seed, SynthImageOptions(split=split), BackgroundLibrary(list_backgrounds(split)))
-    jpeg = _encode(sample.image, "jpg", sample.jpeg_quality)
-    return cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR), sample.markers
-
-
 def test_markers_in_an_image_wider_than_remap_allows_are_found_across_its_blocks():
     # cv2.remap refuses images of 32767 pixels a side or more (orthophotos, panoramas): the full
     # image is sampled block by block, here around a block seam (16384) and far out (36000)
@@ -1443,8 +1433,6 @@ def test_a_board_corner_verified_from_a_coarse_level_meets_its_own_board(tmp_pat
     # eight saddles of the gravel around (c_hat ~40) took the single-saddle test's slots and the
     # corner was kept as a square (score 0.74); ranked against its copies (the default since stop 73),
     # the board's corners come first
-    from photo_helpers import write_generated_jpeg
-
     path = tmp_path / "board.jpg"
     markers = write_generated_jpeg(path, 17, 38900, width=8192, height=5460, radius_min_px=32, split="test")
     corner = (1446.5, 4217.6)

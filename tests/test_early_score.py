@@ -10,7 +10,7 @@ from cpdetect import get_detector
 from cpdetect.classical import (EARLY_FEATURES, EARLY_REASON, ClassicalDetector, ClassicalSettings, _search_levels,
                                 _Verifier, early_model, early_score, verify_marker_at)
 from detector_contract import marker_image
-from test_classical import generated_photo
+from photo_helpers import generated_photo
 
 CENTRE, RADIUS = (150.3, 120.6), 40.0
 
@@ -24,7 +24,7 @@ def _verified(marker_type: str, **settings):
 @pytest.mark.parametrize("marker_type", ["square", "circle", "diagonal"])
 def test_early_features_of_a_rendered_marker(marker_type):
     ver, v = _verified(marker_type)
-    e = ver.last_early
+    e = ver.last_early()
     assert set(e) == set(EARLY_FEATURES)
     # every ray of both polarities finds the boundary, and each polarity's rms boundary distance is
     # the marker's extent: the circle's radius, the square's and the diagonal's between its side's
