@@ -53,7 +53,7 @@ def candidate_table(ds) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         h, w = gray.shape
         k = det._search_factor(w, h)
         _, pyramid, levels = _search_levels(gray, k)
-        cands = find_candidates(pyramid, 0.6 * s.min_contrast, det.candidate_cap(k))
+        cands = find_candidates(pyramid, 0.6 * s.min_contrast, s.max_candidates_per_level)
         if not cands:
             continue
         ver = _Verifier(levels, s, (w, h))

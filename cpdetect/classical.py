@@ -177,15 +177,12 @@ class ClassicalSettings:
     max_radius_frac: largest marker radius as a fraction of the image's short side.
     min_contrast: least bright-minus-dark difference of a marker (grey levels, 0..255).
     search_megapixels: size cap of the search image (sets the reduction k).
-    max_candidates_per_level: cap on X-corner candidates per pyramid level (the strongest kept) of an
-        image searched reduced (over ``search_megapixels``: the 45 MP photographs).
-    max_candidates_per_level_unreduced: the same cap for an image searched at its own resolution.
-        Texture there often has thousands of X-corners per level stronger than a small, faint
-        marker's (train-split dev set dev41200, 640 x 480: 72 % of the images over 1,000 at level 0,
-        median 1,879); at 1,000, uncovered markers of contrast 14-50 went without a candidate. Rule 34
-        (stop 76, written before its test sets): 1,000 -> 20,000 found +4 markers, +0 false on the
-        fresh 640 x 480 sets 41900 / 42000 / 42100 in 12-15 % more time (+6 / +1 on dev41200).
-        The reduced search keeps its cap: there the ratio to the decode time is the target.
+    max_candidates_per_level: cap on X-corner candidates per pyramid level (the strongest kept). Texture
+        often has more (train-split dev set dev41200, 640 x 480: 72 % of the images over 1,000 at level 0,
+        median 1,879), and a faint marker's corner can rank past the cap. Raised for images searched at
+        their own size (stop 76), 20,000 found +4 markers on three fresh 640 x 480 sets (rule 34) but
+        cost 2.5-6x the time on textured 2-3 MP images; 3,000 found +0 on four fresh sets (rule 35),
+        so the cap stays 1,000.
     min_score: detections below this score (P(marker), :func:`marker_score`) are dropped.
     min_candidate_score: X-corner candidates whose prefilter score (:func:`candidate_score`) is below
         this are not verified (0 verifies every candidate that passes the fixed prefilter tests).
@@ -359,7 +356,6 @@ class ClassicalSettings:
     min_contrast: float = 12.0
     search_megapixels: float = 3.2
     max_candidates_per_level: int = 1000
-    max_candidates_per_level_unreduced: int = 20000
     min_score: float = 0.65
     min_candidate_score: float = CANDIDATE_SCORE_CUT
     refine_method: str = "auto"
@@ -398,8 +394,6 @@ class ClassicalSettings:
             raise ValueError("search_megapixels must be >= 0.01")
         if not self.max_candidates_per_level >= 1:  # -1 sliced off the strongest list's last one
             raise ValueError("max_candidates_per_level must be >= 1")
-        if not self.max_candidates_per_level_unreduced >= 1:
-            raise ValueError("max_candidates_per_level_unreduced must be >= 1")
         if not self.max_verified >= 1:
             raise ValueError("max_verified must be >= 1")
         if self.refine_method not in METHODS:
@@ -2003,7 +1997,7 @@ class ClassicalDetector:
 
         small, full = read_reduced_colour_then_gray(path, k)
         try:
-            searched = self._search(cv2.cvtColor(small, cv2.COLOR_BGR2GRAY), k)
+            searched = self._search(cv2.cvtColor(small, cv2.COLOR_BGR2GRAY))
             colour = self._colour_images(small)
         except BaseException:
             full.exception()
@@ -2030,18 +2024,12 @@ class ClassicalDetector:
                 return k
         return 8
 
-    def candidate_cap(self, k: int) -> int:
-        """X-corner candidates kept per pyramid level where the search factor is ``k``."""
-        s = self.settings
-        return s.max_candidates_per_level if k > 1 else s.max_candidates_per_level_unreduced
-
-    def _search(self, search: np.ndarray, k: int) -> tuple:
-        """The search image (the photo reduced by ``k``), its pyramid, the X-corner maps of its levels
-        and the candidates."""
+    def _search(self, search: np.ndarray) -> tuple:
+        """The search image, its pyramid, the X-corner maps of its levels and the candidates."""
         s = self.settings
         pyramid = build_pyramid(search)
         gray_c: list[np.ndarray] = []
-        cands = find_candidates(pyramid, 0.6 * s.min_contrast, self.candidate_cap(k), maps=gray_c)
+        cands = find_candidates(pyramid, 0.6 * s.min_contrast, s.max_candidates_per_level, maps=gray_c)
         return search, pyramid, gray_c, cands
 
     def _detect_gray(self, gray: np.ndarray, colour: tuple[np.ndarray, ...] | None = None,
@@ -2056,7 +2044,7 @@ class ClassicalDetector:
         s = self.settings
         h, w = gray.shape
         k = self._search_factor(w, h)
-        search, pyramid, gray_c, cands = searched or self._search(_reduced(gray, k), k)
+        search, pyramid, gray_c, cands = searched or self._search(_reduced(gray, k))
         # the full image is sampled in place (uint8): no full-size float copy
         levels = _Levels(gray if k > 1 else None, k, pyramid)
         accepted: list[tuple[_Verified, Any]] = []
@@ -2064,7 +2052,7 @@ class ClassicalDetector:
         with ThreadPoolExecutor(1) as pool:
             # the paint image's X-corners are found beside the gray verification (mostly OpenCV
             # and NumPy work, which runs outside the GIL, against mostly Python work)
-            colour_cands = pool.submit(self._colour_candidates, colour, k) if colour and s.colour_pass else None
+            colour_cands = pool.submit(self._colour_candidates, colour) if colour and s.colour_pass else None
             rejected = scan.run(levels, cands, s.min_score)
             extras = {"search_factor": k, "candidates": len(cands), "prefiltered": scan.prefiltered,
                       "rejected": rejected}
@@ -2085,14 +2073,13 @@ class ClassicalDetector:
             np.clip(prob, 0.0, 1.0, out=prob)
         return DetectionResult(dets, (w, h), prob, 0.0, extras)
 
-    def _colour_candidates(self, colour: tuple[np.ndarray, ...], k: int) -> list[tuple[list, list, list]]:
-        """Each colour image's pyramid, X-corner candidates and X-corner maps (see :meth:`_colour_pass`);
-        ``k``: the search factor the images are reduced by."""
+    def _colour_candidates(self, colour: tuple[np.ndarray, ...]) -> list[tuple[list, list, list]]:
+        """Each colour image's pyramid, X-corner candidates and X-corner maps (see :meth:`_colour_pass`)."""
         s = self.settings
         out = []
         for img in colour:
             pyr, maps = build_pyramid(img), []
-            out.append((pyr, find_candidates(pyr, 0.6 * s.min_contrast, self.candidate_cap(k), maps=maps), maps))
+            out.append((pyr, find_candidates(pyr, 0.6 * s.min_contrast, s.max_candidates_per_level, maps=maps), maps))
         return out
 
     def _colour_pass(self, scan: "_Scan", gray_c: list[np.ndarray], colour: tuple[np.ndarray, ...],
