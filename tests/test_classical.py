@@ -390,6 +390,11 @@ def test_unknown_setting_is_refused():
     for bad in (0, -1):  # -1 was taken, and sliced the last candidate off each level's list
         with pytest.raises(UsageError, match="max_candidates_per_level must be >= 1"):
             get_detector("classical", max_candidates_per_level=bad)
+    for bad in (-0.1, 1.5):
+        with pytest.raises(UsageError, match="held_score must be in"):
+            get_detector("classical", held_score=bad)
+    with pytest.raises(UsageError, match="held_max_sigma_px must be positive"):
+        get_detector("classical", held_max_sigma_px=0)
     for bad in (0, -0.2):  # a cut of 0 or less would drop every marker
         with pytest.raises(UsageError, match="max_centre_offset must be positive"):
             get_detector("classical", max_centre_offset=bad)
@@ -1107,6 +1112,33 @@ def test_type_is_read_from_the_polarity_whose_boundary_fits_better(monkeypatch):
     before = _typed_with(monkeypatch, "TYPE_FIT_RATIO", 0.0, img, truth[0])
     assert len(before) == 1
     assert near[0].radius_px == before[0].radius_px and near[0].score == before[0].score
+
+
+def test_a_held_marker_is_added_where_no_kept_one_stands_and_blocks_no_better_candidate():
+    # train-split set of seed 41200. Image 7: a diagonal marker of radius 22 px at the top border
+    # scores 0.51, under min_score, with a sharp X-corner (sigma 0.01 px): held (held_score 0.4), it
+    # is added after the passes. Image 339: a square of radius 18 px whose gray candidates score
+    # 0.04-0.41 and whose colour-pass candidate scores 0.99; a plain min_score of 0.4 keeps the gray
+    # candidate and skips the better one beside it, a held one gives way to it
+    def near(res, x, y):
+        return [d for d in res.detections if math.hypot(d.x - x, d.y - y) < 1.0]
+
+    img, _ = generated_photo(7, 41200)
+    assert near(ClassicalDetector().detect(img), 400.55, 34.81) == []
+    res = ClassicalDetector(held_score=0.4).detect(img)
+    found = near(res, 400.55, 34.81)
+    assert len(found) == 1 and found[0].type == "diagonal" and 0.4 <= found[0].score < 0.65
+    assert math.hypot(found[0].x - 400.55, found[0].y - 34.81) < 0.1 and res.extras["held_added"] == 1
+    # a held marker must have a sharp X-corner: over the cut on its sigma it stays out
+    assert near(ClassicalDetector(held_score=0.4, held_max_sigma_px=0.005).detect(img), 400.55, 34.81) == []
+
+    img, _ = generated_photo(339, 41200)
+    best = near(ClassicalDetector().detect(img), 572.99, 331.75)
+    assert len(best) == 1 and best[0].score > 0.95
+    held = near(ClassicalDetector(held_score=0.4).detect(img), 572.99, 331.75)
+    assert [(d.x, d.y, d.score) for d in held] == [(best[0].x, best[0].y, best[0].score)]
+    low = near(ClassicalDetector(min_score=0.4).detect(img), 572.99, 331.75)
+    assert len(low) == 1 and low[0].score < 0.65
 
 
 def test_the_candidate_cap_decides_whether_a_faint_marker_on_busy_texture_is_tried():
