@@ -245,8 +245,13 @@ class ClassicalSettings:
         got four for twelve more markers over fresh 640 x 480 43000-43200, 1920 x 1080 43500 and
         45 MP 43400 (two pairs of touching dark blobs, a checkerboard corner, one at 45 MP), after
         +13 markers and +0 false on the train-split dev sets dev41200 / dev43300 it was chosen on.
+        Rule 37 (the same with ``held_squares`` False) failed too: +2 markers, +2 false (one at 45 MP)
+        over fresh 640 x 480 44000-44200, 1920 x 1080 44300 and 45 MP 44400, where it asked for +4.
     held_max_sigma_px: a held marker is added only where its refined centre's uncertainty (sigma_px)
         is at most this: a marker the score doubts must at least have a well-defined X-corner.
+    held_squares: whether a held marker typed square may be added. On four train-split dev sets
+        (dev41200, dev43300, dev43600, dev43700) every held false marker was typed square (tag bit
+        corners, a checkerboard corner: 6) against 14 of the 25 held true ones.
     max_verified: at most this many candidates that pass the prefilter are verified per image, in
         the order of the scan (coarse levels, then contrast); the rest are counted in the result's
         ``extras["unverified"]``. On the train-split dev set dev1212 at most 149 pass (median 24); a
@@ -385,6 +390,7 @@ class ClassicalSettings:
     retry_score: float = 0.2
     held_score: float | None = None
     held_max_sigma_px: float = 0.03
+    held_squares: bool = False
     saddle_axes: bool = True
     max_centre_offset: float | None = 0.25
     centre_offset_max_blur_px: float = 1.2
@@ -2298,7 +2304,7 @@ class _Scan:
                 continue
             if v.score < min_score:
                 mark(ci, "held", v)
-                if sigma <= s.held_max_sigma_px:
+                if sigma <= s.held_max_sigma_px and (s.held_squares or v.type != "square"):
                     self.held.append((v, sigma))
                 continue
             mark(ci, "kept", v)

@@ -1116,15 +1116,15 @@ def test_type_is_read_from_the_polarity_whose_boundary_fits_better(monkeypatch):
 
 def test_a_held_marker_is_added_where_no_kept_one_stands_and_blocks_no_better_candidate():
     # train-split set of seed 41200. Image 7: a diagonal marker of radius 22 px at the top border
-    # scores 0.51, under min_score, with a sharp X-corner (sigma 0.01 px): held (held_score 0.4), it
-    # is added after the passes. Image 339: a square of radius 18 px whose gray candidates score
-    # 0.04-0.41 and whose colour-pass candidate scores 0.99; a plain min_score of 0.4 keeps the gray
-    # candidate and skips the better one beside it, a held one gives way to it
+    # scores 0.51, under min_score, with a sharp X-corner (sigma 0.01 px): held, it is added after the
+    # passes. Image 339: a square of radius 18 px whose gray candidates score 0.04-0.41 and whose
+    # colour-pass candidate scores 0.99; a plain min_score of 0.4 keeps the gray candidate and skips
+    # the better one beside it, a held one (squares let in) gives way to it
     def near(res, x, y):
         return [d for d in res.detections if math.hypot(d.x - x, d.y - y) < 1.0]
 
     img, _ = generated_photo(7, 41200)
-    assert near(ClassicalDetector().detect(img), 400.55, 34.81) == []
+    assert near(ClassicalDetector(held_score=None).detect(img), 400.55, 34.81) == []
     res = ClassicalDetector(held_score=0.4).detect(img)
     found = near(res, 400.55, 34.81)
     assert len(found) == 1 and found[0].type == "diagonal" and 0.4 <= found[0].score < 0.65
@@ -1135,10 +1135,24 @@ def test_a_held_marker_is_added_where_no_kept_one_stands_and_blocks_no_better_ca
     img, _ = generated_photo(339, 41200)
     best = near(ClassicalDetector().detect(img), 572.99, 331.75)
     assert len(best) == 1 and best[0].score > 0.95
-    held = near(ClassicalDetector(held_score=0.4).detect(img), 572.99, 331.75)
+    held = near(ClassicalDetector(held_score=0.4, held_squares=True).detect(img), 572.99, 331.75)
     assert [(d.x, d.y, d.score) for d in held] == [(best[0].x, best[0].y, best[0].score)]
     low = near(ClassicalDetector(min_score=0.4).detect(img), 572.99, 331.75)
     assert len(low) == 1 and low[0].score < 0.65
+
+
+def test_a_held_marker_typed_square_is_added_only_where_squares_are_let_in():
+    # train-split set of seed 41200, image 51: a square marker of radius 20 px at 50 degrees of tilt,
+    # blurred, scores 0.54 with a sharp centre; held squares were tag bit corners and checkerboard
+    # corners on the dev sets, so by default it stays out
+    img, _ = generated_photo(51, 41200)
+
+    def near(det):
+        return [d for d in det.detect(img).detections if math.hypot(d.x - 307.33, d.y - 272.26) < 1.0]
+
+    assert near(ClassicalDetector(held_score=0.2)) == []
+    found = near(ClassicalDetector(held_score=0.2, held_squares=True))
+    assert len(found) == 1 and found[0].type == "square" and 0.2 <= found[0].score < 0.65
 
 
 def test_the_candidate_cap_decides_whether_a_faint_marker_on_busy_texture_is_tried():
