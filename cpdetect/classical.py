@@ -2201,6 +2201,10 @@ class _Scan:
         # the least score that goes on past the score test (held aside under min_score)
         lowest = min_score if colour or s.held_score is None else min(s.held_score, min_score)
 
+        def dropped(v: "_Verified") -> bool:
+            # under min_score and not to be held: so a square that may not be held is not refined
+            return v.score < min_score and (v.score < lowest or not (s.held_squares or v.type != "square"))
+
         def mark(ci: int, stage: str, v: "_Verified | None" = None) -> None:
             if self.trace is None:
                 return
@@ -2230,7 +2234,7 @@ class _Scan:
             v = verifier.verify(cx, cy, r_start)
             if not isinstance(v, str) and s.retry_score <= v.score < min_score:
                 v = _retry_ring_starts(verifier, cx, cy, r_start, v)
-            if isinstance(v, str) or v.score < lowest:
+            if isinstance(v, str) or dropped(v):
                 if isinstance(v, str):
                     mark(ci, "verify: " + v)
                 else:
@@ -2294,7 +2298,7 @@ class _Scan:
             else:
                 sigma = max(0.5 * scale, 0.5)
                 v.score *= 0.7
-            if v.score < lowest:
+            if dropped(v):
                 mark(ci, "score after refinement", v)
                 continue
             if s.tag_grid_min_each is not None and v.type == "square" and is_tag_grid(
@@ -2304,7 +2308,7 @@ class _Scan:
                 continue
             if v.score < min_score:
                 mark(ci, "held", v)
-                if sigma <= s.held_max_sigma_px and (s.held_squares or v.type != "square"):
+                if sigma <= s.held_max_sigma_px:
                     self.held.append((v, sigma))
                 continue
             mark(ci, "kept", v)
@@ -2318,7 +2322,6 @@ class _Scan:
         for v, sigma in sorted(self.held, key=lambda t: -t[0].score):
             if not any(math.hypot(v.x - a.x, v.y - a.y) < 0.5 * max(a.radius, v.radius) for a, _ in self.accepted):
                 self.accepted.append((v, sigma))
-        self.held = []
         return len(self.accepted) - n0
 
 
