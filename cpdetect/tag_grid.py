@@ -13,6 +13,7 @@ Pixel coordinates follow OpenCV (the centre of the top-left pixel is (0, 0)).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -119,3 +120,242 @@ def is_tag_grid(counts: dict[str, int] | None, min_each: int = 2) -> bool:
         return False
     return counts["mix"] == 0 and counts["other"] == 0 and counts["dark"] >= min_each \
         and counts["bright"] >= min_each
+
+
+# ------------------------------------------------------------------------------------------------
+# the lattice an X-corner's own sector edges span (no outline needed)
+#
+# The test above carries the grid on from the outline's four corners. Around a tag's bit corner the
+# outline is often not one cell: the sectors' rays run on over bits of their own level, so the
+# outline spans several cells, or closes as an ellipse, and the grid it carries on is not the tag's
+# (on the seen 1920 x 1080 and 45 MP sets, 8 of 11 false markers were tag bit corners that passed
+# it). Here the lattice comes from the corner itself: the directions of its four sector edges near
+# the centre, and along each edge the distance at which either sector beside it first changes level
+# (one cell in a tag, where a neighbouring bit differs; the outline for a printed marker).
+
+LATTICE_ANGLES = 144  # samples per ring for the sector edges' directions
+LATTICE_CELL_RATIO = 1.3  # a half-edge over this times its opposite one ran on over same-level bits
+LATTICE_MAX_RATIO = 2.0  # neighbouring edges' cell lengths further apart than this: no lattice
+LATTICE_ALIGNED = 0.15  # a boundary between two cells lies within this share of a cell of the lattice's
+
+
+@dataclass
+class LatticeCells:
+    """The cells around an X-corner on the lattice of its own sector edges (:func:`lattice_cells`).
+
+    counts: the twelve cells around the middle 2 x 2, by CELL_LABELS (as :func:`grid_cells`).
+    inner_in / inner_ok: the middle four cells inside the image / of those, uniform at their sector's
+    level. cell_px: the cell's length along each of the four half-edges (pixels, by angle).
+    ratio: the largest ratio of two neighbouring half-edges' cell lengths. boundaries / aligned: the
+    boundaries between neighbouring cells of the two levels that were looked at / of those, the ones
+    whose level step lies within LATTICE_ALIGNED of a cell of the lattice's line. levels: (dark,
+    bright) grey levels of the corner's sectors. stepless: the half-edges whose own cell length no
+    change of level between the cells beside it shows (see :func:`lattice_cells`)."""
+
+    counts: dict[str, int]
+    inner_in: int
+    inner_ok: int
+    cell_px: tuple[float, float, float, float]
+    ratio: float
+    boundaries: int
+    aligned: int
+    levels: tuple[float, float]
+    stepless: int = 0
+
+
+def _sample(gray: np.ndarray, px: np.ndarray, py: np.ndarray) -> np.ndarray:
+    """Bilinear grey levels at (px, py) (any equal shapes, pixels), NaN where a point lies outside
+    the image; only the points' bounding window is read."""
+    import cv2
+
+    h, w = gray.shape[:2]
+    px, py = np.asarray(px, float), np.asarray(py, float)
+    out = np.full(px.shape, np.nan)
+    inside = (px >= 0) & (py >= 0) & (px <= w - 1) & (py <= h - 1)
+    if not inside.any():
+        return out
+    ux, uy = px[inside], py[inside]
+    x0, y0 = int(math.floor(float(ux.min()))), int(math.floor(float(uy.min())))
+    x1, y1 = min(int(math.ceil(float(ux.max()))) + 2, w), min(int(math.ceil(float(uy.max()))) + 2, h)
+    win = np.ascontiguousarray(gray[y0:y1, x0:x1])
+    out[inside] = cv2.remap(win, (ux - x0).astype(np.float32).reshape(1, -1),
+                            (uy - y0).astype(np.float32).reshape(1, -1), cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_REPLICATE).astype(float).ravel()
+    return out
+
+
+def _edge_angles(gray: np.ndarray, x: float, y: float, r: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """The four angles (radians in [0, 2 pi), ascending; image frame, from +x toward +y) where the
+    pattern around (x, y) changes between dark and bright on rings of 1-1.8 ``r``, and each sector's
+    grey level (sector j from angle j to angle j + 1), or None unless exactly four changes."""
+    step = 2.0 * math.pi / LATTICE_ANGLES
+    th = (np.arange(LATTICE_ANGLES) + 0.5) * step
+    rs = r * np.array([1.0, 1.4, 1.8])
+    v = _sample(gray, x + rs[:, None] * np.cos(th), y + rs[:, None] * np.sin(th))
+    if np.isnan(v).any():
+        return None
+    prof = (v - v.mean(1, keepdims=True)).mean(0)
+    prof = 0.25 * np.roll(prof, 1) + 0.5 * prof + 0.25 * np.roll(prof, -1)
+    pos = prof > 0
+    ch = np.nonzero(pos != np.roll(pos, 1))[0]
+    if len(ch) != 4:
+        return None
+    a, b = prof[ch - 1], prof[ch]
+    frac = np.where(a != b, a / np.where(a != b, a - b, 1.0), 0.5)
+    ang = np.sort(np.mod(th[ch - 1] + frac * step, 2.0 * math.pi))
+    levels = np.empty(4)
+    for j in range(4):
+        span = (ang[(j + 1) % 4] - ang[j]) % (2.0 * math.pi)
+        d = np.mod(th - ang[j], 2.0 * math.pi)
+        mid = (d > 0.25 * span) & (d < 0.75 * span)
+        levels[j] = float(np.median(v[:, mid])) if mid.any() else math.nan
+    return ang, levels
+
+
+def _cell_label(vals: np.ndarray, dark: float, bright: float) -> str:
+    contrast = bright - dark
+    if np.isnan(vals).any():
+        return "out"
+    med = float(np.median(vals))
+    if float(np.median(np.abs(vals - med))) > UNIFORM_MAD * contrast:
+        return "mix"
+    if abs(med - dark) <= LEVEL_TOLERANCE * contrast:
+        return "dark"
+    if abs(med - bright) <= LEVEL_TOLERANCE * contrast:
+        return "bright"
+    return "other"
+
+
+def lattice_cells(gray: np.ndarray, x: float, y: float, radius_px: float) -> LatticeCells | None:
+    """The cells around the X-corner at (x, y) (pixels, OpenCV convention) on the lattice of its own
+    sector edges, or None where it has no such lattice (not four alternating sectors near the centre,
+    no level change along an edge and its opposite within 3 ``radius_px``, or neighbouring cell
+    lengths over LATTICE_MAX_RATIO apart). ``gray``: the uint8 image; ``radius_px``: the marker's
+    apparent radius (sets the rings the edges are read on, 0.12 of it within 3-12 px, and how far
+    along the edges a change is looked for). Each quadrant between two half-edges is its own
+    parallelogram frame (so the lattice bends with perspective from quadrant to quadrant); its cells
+    are sampled at 5 x 5 points over their middle 60 %."""
+    r_ang = float(np.clip(0.12 * radius_px, 3.0, 12.0))
+    got = _edge_angles(gray, x, y, r_ang)
+    if got is None:
+        return None
+    ang, lv = got
+    dark_sec = lv < np.median(lv)
+    if not (np.isfinite(lv).all() and dark_sec.sum() == 2 and dark_sec[0] == dark_sec[2] != dark_sec[1]):
+        return None
+    dark, bright = float(lv[dark_sec].mean()), float(lv[~dark_sec].mean())
+    if not bright > dark:
+        return None
+    mid = 0.5 * (dark + bright)
+    e = np.stack([np.cos(ang), np.sin(ang)], 1)  # the four half-edges' directions
+    ts = np.arange(r_ang, 3.0 * radius_px, max(1.0, radius_px / 64.0))
+    # per sector two rays, a fifth of its angle in from each of its edges: the first distance at
+    # which the sector's level changes (three samples past mid after a 3-sample mean), as a length
+    # along that edge in the sector's own frame
+    found: list[list[float]] = [[], [], [], []]
+    for j in range(4):
+        k = (j + 1) % 4
+        span = (ang[k] - ang[j]) % (2.0 * math.pi)
+        to_frame = np.linalg.inv(np.array([e[j], e[k]]).T)
+        for frac, edge in ((0.2, j), (0.8, k)):
+            phi = ang[j] + frac * span
+            v = _sample(gray, x + ts * math.cos(phi), y + ts * math.sin(phi))
+            out = np.nonzero(np.isnan(v))[0]
+            vs = np.convolve(np.nan_to_num(v, nan=mid), np.ones(3) / 3.0, mode="same")
+            changed = vs > mid if dark_sec[j] else vs < mid
+            at = np.nonzero(changed[:-2] & changed[1:-1] & changed[2:])[0]
+            if at.size and (not out.size or at[0] < out[0]):
+                t = ts[at[0]]
+                ab = to_frame @ np.array([t * math.cos(phi), t * math.sin(phi)])
+                found[edge].append(float(ab[0] if edge == j else ab[1]))
+    s = np.array([min(f) if f else math.nan for f in found])
+    own = s.copy()
+    for i in range(4):
+        # both sectors beside a half-edge ran on over bits of their own level: its opposite's length
+        o = s[(i + 2) % 4]
+        if math.isfinite(o) and (not math.isfinite(s[i]) or s[i] > LATTICE_CELL_RATIO * o):
+            s[i] = o
+    if not np.isfinite(s).all():
+        return None
+    ratio = float(max(max(s[i], s[(i + 1) % 4]) / min(s[i], s[(i + 1) % 4]) for i in range(4)))
+    if ratio > LATTICE_MAX_RATIO:
+        return None
+
+    def at(j: int, a, b) -> tuple[np.ndarray, np.ndarray]:  # quadrant j's frame -> pixels
+        k = (j + 1) % 4
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        return (x + a * s[j] * e[j, 0] + b * s[k] * e[k, 0], y + a * s[j] * e[j, 1] + b * s[k] * e[k, 1])
+
+    uu, vv = (g.ravel() for g in np.meshgrid(_GRID, _GRID))
+    quads = ((0, 0), (1, 0), (0, 1), (1, 1))
+    vals = _sample(gray, *np.concatenate([np.stack(at(j, a0 + uu, b0 + vv)) for j in range(4) for a0, b0 in quads],
+                                         axis=1))
+    label: dict[tuple[int, int, int], str] = {}
+    counts = dict.fromkeys(CELL_LABELS, 0)
+    inner_in = inner_ok = 0
+    for n, (j, (a0, b0)) in enumerate((j, q) for j in range(4) for q in quads):
+        lab = _cell_label(vals[n * len(uu):(n + 1) * len(uu)], dark, bright)
+        if (a0, b0) == (0, 0):
+            inner_in += lab != "out"
+            inner_ok += lab == ("dark" if dark_sec[j] else "bright")
+            lab = "dark" if dark_sec[j] else "bright"
+        else:
+            counts[lab] += 1
+        label[(j, a0, b0)] = lab
+    # a half-edge's own length (not its opposite's) was read where a sector beside it changes level,
+    # so one of the two cells one further along it must be of the other level than the cell before
+    # it; where neither is, the change was no cell's side (an occluder over a printed marker's sector,
+    # whose lattice would then lie inside the marker, its cells the marker's own)
+    stepless = 0
+    for i in range(4):
+        if own[i] == s[i]:
+            h = (i - 1) % 4
+            steps = [label[(i, 1, 0)] != label[(i, 0, 0)], label[(h, 0, 1)] != label[(h, 0, 0)]]
+            stepless += not any(steps) and "out" not in (label[(i, 1, 0)], label[(h, 0, 1)])
+    # boundaries between neighbouring cells of the two levels: the mean profile across the shared
+    # side (at 0.3, 0.5, 0.7 along it) crosses mid within LATTICE_ALIGNED of the lattice's line
+    dd = np.linspace(-0.45, 0.45, 19)
+    T, Dd = np.meshgrid(np.array([0.3, 0.5, 0.7]), dd, indexing="ij")
+    pairs = []
+    for j in range(4):
+        k = (j + 1) % 4
+        for b0 in (0, 1):
+            pairs.append(((j, 0, b0), (j, 1, b0), at(j, 1 + Dd, b0 + T)))
+        for a0 in (0, 1):
+            pairs.append(((j, a0, 0), (j, a0, 1), at(j, a0 + T, 1 + Dd)))
+        # across half-edge k, its outer pair of cells (the inner pair is the corner's own edge)
+        pj, pk = at(j, -np.minimum(Dd, 0), 1 + T), at(k, 1 + T, np.maximum(Dd, 0))
+        pairs.append(((j, 0, 1), (k, 1, 0), (np.where(Dd < 0, pj[0], pk[0]), np.where(Dd < 0, pj[1], pk[1]))))
+    boundaries = aligned = 0
+    for c1, c2, (px, py) in pairs:
+        if {label[c1], label[c2]} != {"dark", "bright"}:
+            continue
+        prof = _sample(gray, px, py)
+        if np.isnan(prof).any():
+            continue
+        prof = prof.mean(0)
+        if label[c1] == "bright":
+            prof = 2.0 * mid - prof
+        boundaries += 1
+        above = np.nonzero(prof > mid)[0]
+        if above.size and above[0] > 0:
+            i = int(above[0])
+            f = (mid - prof[i - 1]) / (prof[i] - prof[i - 1])
+            aligned += int(abs(dd[i - 1] + f * (dd[i] - dd[i - 1])) <= LATTICE_ALIGNED)
+    return LatticeCells(counts, inner_in, inner_ok, tuple(float(z) for z in s), ratio, boundaries, aligned,
+                        (dark, bright), stepless)
+
+
+def is_tag_lattice(cells: LatticeCells | None, min_each: int = 2, min_boundaries: int = 3) -> bool:
+    """Whether the cells around an X-corner on its own lattice (:func:`lattice_cells`) are a tag's bits:
+    at least three of the middle four cells inside the image and every one of those uniform at its
+    sector's level; every one of the twelve around them inside the image uniform at one of the two
+    levels, at least ``min_each`` of each; at least ``min_boundaries`` boundaries between cells of
+    the two levels, every one on the lattice's lines; and beside every half-edge that measured its
+    own cell length, a change of level one cell out."""
+    if cells is None:
+        return False
+    c = cells.counts
+    return cells.inner_in >= 3 and cells.inner_ok == cells.inner_in and c["mix"] == 0 and c["other"] == 0 \
+        and c["dark"] >= min_each and c["bright"] >= min_each \
+        and cells.boundaries >= min_boundaries and cells.aligned == cells.boundaries and cells.stepless == 0
