@@ -235,7 +235,12 @@ def lattice_cells(gray: np.ndarray, x: float, y: float, radius_px: float) -> Lat
     along the edges a change is looked for). Each quadrant between two half-edges is its own
     parallelogram frame (so the lattice bends with perspective from quadrant to quadrant); its cells
     are sampled at 5 x 5 points over their middle 60 %."""
+    if not (math.isfinite(radius_px) and radius_px > 0 and math.isfinite(x) and math.isfinite(y)):
+        return None
     r_ang = float(np.clip(0.12 * radius_px, 3.0, 12.0))
+    ts = np.arange(r_ang, 3.0 * radius_px, max(1.0, radius_px / 64.0))
+    if ts.size < 3:
+        return None  # a pattern too small to look past its rings
     got = _edge_angles(gray, x, y, r_ang)
     if got is None:
         return None
@@ -248,7 +253,6 @@ def lattice_cells(gray: np.ndarray, x: float, y: float, radius_px: float) -> Lat
         return None
     mid = 0.5 * (dark + bright)
     e = np.stack([np.cos(ang), np.sin(ang)], 1)  # the four half-edges' directions
-    ts = np.arange(r_ang, 3.0 * radius_px, max(1.0, radius_px / 64.0))
     # per sector two rays, a fifth of its angle in from each of its edges: the first distance at
     # which the sector's level changes (three samples past mid after a 3-sample mean), as a length
     # along that edge in the sector's own frame
@@ -256,7 +260,10 @@ def lattice_cells(gray: np.ndarray, x: float, y: float, radius_px: float) -> Lat
     for j in range(4):
         k = (j + 1) % 4
         span = (ang[k] - ang[j]) % (2.0 * math.pi)
-        to_frame = np.linalg.inv(np.array([e[j], e[k]]).T)
+        frame = np.array([e[j], e[k]]).T
+        if abs(float(np.linalg.det(frame))) < 0.05:  # two edges within 3 degrees of one line
+            return None
+        to_frame = np.linalg.inv(frame)
         for frac, edge in ((0.2, j), (0.8, k)):
             phi = ang[j] + frac * span
             v = _sample(gray, x + ts * math.cos(phi), y + ts * math.sin(phi))

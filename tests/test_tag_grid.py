@@ -256,6 +256,9 @@ def test_no_lattice_without_four_alternating_sectors_or_with_unequal_cells():
     # a centre too near the border for the rings the edges are read on
     img, _ = render_cells(checker_in(LATTICE_BITS), 30.0, (2.0, 240.0), 0.0)
     assert lattice_cells(img, 2.0, 240.0, 30.0) is None
+    # a radius too small to look past the rings, or none at all
+    img, _ = render_cells(checker_in(LATTICE_BITS), 30.0, (320.3, 240.7), 0.0)
+    assert lattice_cells(img, 320.3, 240.7, 1.0) is None and lattice_cells(img, 320.3, 240.7, float("nan")) is None
     # cells three times as long one way as the other: no lattice (at most LATTICE_MAX_RATIO)
     img = np.full((300, 400), 128, np.uint8)
     xx = np.arange(400)[None, :] - 200.0
