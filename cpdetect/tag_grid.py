@@ -66,21 +66,12 @@ def cell_levels(gray: np.ndarray, outline: np.ndarray, x: float, y: float) -> li
     uu, vv = np.meshgrid(_GRID, _GRID)
     pts = np.concatenate([np.stack([(i + uu).ravel(), (j + vv).ravel()], 1) for i, j in _CELLS])
     pts = cv2.perspectiveTransform(pts[None].astype(np.float32), H)[0].reshape(len(_CELLS), -1, 2)
-    h, w = gray.shape[:2]
-    inside = ~((pts < 0).any(axis=(1, 2)) | (pts[:, :, 0] > w - 1).any(1) | (pts[:, :, 1] > h - 1).any(1))
+    vals = _sample(gray, pts[:, :, 0], pts[:, :, 1])
     out: list[tuple[float, float] | None] = [None] * len(_CELLS)
-    if not inside.any():
-        return out
-    # sampled in a window around the cells: cv2.remap takes no image of 32767 pixels a side or more
-    use = pts[inside]
-    x0, y0 = (int(math.floor(float(use[:, :, k].min()))) for k in (0, 1))
-    x1, y1 = (int(math.ceil(float(use[:, :, k].max()))) + 2 for k in (0, 1))
-    win = np.ascontiguousarray(gray[y0:min(y1, h), x0:min(x1, w)])
-    vals = cv2.remap(win, (use[:, :, 0] - x0).astype(np.float32), (use[:, :, 1] - y0).astype(np.float32),
-                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(float)
-    for k, v in zip(np.nonzero(inside)[0], vals):
-        med = float(np.median(v))
-        out[k] = (med, float(np.median(np.abs(v - med))))
+    for k, v in enumerate(vals):
+        if not np.isnan(v).any():
+            med = float(np.median(v))
+            out[k] = (med, float(np.median(np.abs(v - med))))
     return out
 
 
@@ -100,17 +91,21 @@ def grid_cells(gray: np.ndarray, outline: np.ndarray, x: float, y: float,
         return None
     counts = dict.fromkeys(CELL_LABELS, 0)
     for cell in cells:
-        if cell is None:
-            counts["out"] += 1
-        elif cell[1] > UNIFORM_MAD * contrast:
-            counts["mix"] += 1
-        elif abs(cell[0] - dark) <= LEVEL_TOLERANCE * contrast:
-            counts["dark"] += 1
-        elif abs(cell[0] - bright) <= LEVEL_TOLERANCE * contrast:
-            counts["bright"] += 1
-        else:
-            counts["other"] += 1
+        counts["out" if cell is None else _level_label(*cell, dark, bright)] += 1
     return counts
+
+
+def _level_label(median: float, mad: float, dark: float, bright: float) -> str:
+    """A cell inside the image by its samples' median and median absolute deviation: "mix", "dark",
+    "bright" or "other" (see :func:`grid_cells`)."""
+    contrast = bright - dark
+    if mad > UNIFORM_MAD * contrast:
+        return "mix"
+    if abs(median - dark) <= LEVEL_TOLERANCE * contrast:
+        return "dark"
+    if abs(median - bright) <= LEVEL_TOLERANCE * contrast:
+        return "bright"
+    return "other"
 
 
 def is_tag_grid(counts: dict[str, int] | None, min_each: int = 2) -> bool:
@@ -165,7 +160,8 @@ class LatticeCells:
 
 def _sample(gray: np.ndarray, px: np.ndarray, py: np.ndarray) -> np.ndarray:
     """Bilinear grey levels at (px, py) (any equal shapes, pixels), NaN where a point lies outside
-    the image; only the points' bounding window is read."""
+    the image; only the points' bounding window is read (cv2.remap takes no image of 32767 pixels a
+    side or more, and a 45 MP image as float would be 180 MB)."""
     import cv2
 
     h, w = gray.shape[:2]
@@ -213,17 +209,11 @@ def _edge_angles(gray: np.ndarray, x: float, y: float, r: float) -> tuple[np.nda
 
 
 def _cell_label(vals: np.ndarray, dark: float, bright: float) -> str:
-    contrast = bright - dark
+    """A cell by its samples (NaN outside the image): "out", else :func:`_level_label`."""
     if np.isnan(vals).any():
         return "out"
     med = float(np.median(vals))
-    if float(np.median(np.abs(vals - med))) > UNIFORM_MAD * contrast:
-        return "mix"
-    if abs(med - dark) <= LEVEL_TOLERANCE * contrast:
-        return "dark"
-    if abs(med - bright) <= LEVEL_TOLERANCE * contrast:
-        return "bright"
-    return "other"
+    return _level_label(med, float(np.median(np.abs(vals - med))), dark, bright)
 
 
 def lattice_cells(gray: np.ndarray, x: float, y: float, radius_px: float) -> LatticeCells | None:
