@@ -364,6 +364,19 @@ class ClassicalSettings:
         marker. Rule 38, the same test without ``LatticeCells.stepless``, failed on 45000-45400: it
         dropped a true square whose lattice an occluder had shortened (its cells inside the marker)
         and only 1 false marker.
+    colour_centre_reach: in the colour passes, a centre fit counts only where the four-sector pattern
+        reaches it (:func:`cpdetect.centre_reach.centre_reach` at least ``CENTRE_REACH_MIN``): the gray
+        fit on the gray image, the paint fit on the colour image searched (search resolution). Where
+        only one fit counts it is kept; where both do, ``colour_fit_max_apart_px`` and the sigmas
+        choose as before; where neither does, the candidate is refused ("centre reach"), as the gray
+        pass refuses its own. On next to no gray contrast the gray fit can settle where no pattern
+        is (a 16 px painted circle on a seen 1920 x 1080 set: 2.3 px off at sigma 0.011 px, its paint
+        fit 0.6 px off), and a marker whose centre an occluder hides can be fitted inside the
+        occluder (a 95 px circle at 45 MP: 19 px off at sigma 0.31 px). Off by default: rule 40
+        (stop 78, written before its sets existed) asked for at least one colour-pass centre made
+        better on fresh 640 x 480 45900 / 46000, 1920 x 1080 46100 (600 images each) and 45 MP 46200
+        (72), and none changed: the same 3,687 markers, 29 false ones, types and centres (those two
+        cases were the only ones on 82 colour-pass detections of ten seen sets).
     early_score_cut: a verification whose early score (:func:`early_score`: P(the full verification
         scores at least EARLY_TARGET_SCORE) from the core's measures and the sectors' rough
         boundaries, trees fitted on train-split images by bench/fit_early_score.py) is under this
@@ -423,6 +436,7 @@ class ClassicalSettings:
     saddle_alike_to: str = "copies"
     tag_grid_min_each: int | None = 3
     tag_lattice: bool = True
+    colour_centre_reach: bool = False
     early_score_cut: float = 0.0
 
     def __post_init__(self) -> None:
@@ -2293,8 +2307,17 @@ class _Scan:
                 # apart than two fits of one centre do: then the gray fit found something else (a
                 # single checker line on next to no gray contrast) and the paint fit stays
                 alt = _refine_reduced(paint_search, k, v.x, v.y, v.radius, s.refine_method, shift)
-                if alt.ok and (not ref.ok or alt.sigma_px < ref.sigma_px
-                               or _fits_apart(ref, alt, s.colour_fit_max_apart_px)):
+                gray_holds, paint_holds = ref.ok, alt.ok
+                if s.colour_centre_reach:
+                    gray_holds = ref.ok and centre_reach(gray, ref.x, ref.y, v.radius) >= CENTRE_REACH_MIN
+                    paint_holds = alt.ok and centre_reach(paint_search, (alt.x + 0.5) / k - 0.5, (alt.y + 0.5) / k - 0.5,
+                                                          v.radius / k) >= CENTRE_REACH_MIN
+                    if (ref.ok or alt.ok) and not (gray_holds or paint_holds):
+                        mark(ci, "centre reach", v)
+                        rejected += 1
+                        continue
+                if paint_holds and (not gray_holds or alt.sigma_px < ref.sigma_px
+                                    or _fits_apart(ref, alt, s.colour_fit_max_apart_px)):
                     ref = alt
             if ref.ok and s.outline_window > 0:
                 moved = v.outline + [ref.x - v.x, ref.y - v.y]

@@ -1415,6 +1415,81 @@ def test_the_colour_pass_takes_the_paint_fit_where_the_two_fits_lie_far_apart():
         ClassicalDetector(colour_fit_max_apart_px=0.0)
 
 
+def test_the_colour_pass_keeps_the_fit_whose_centre_the_pattern_reaches(tmp_path):
+    # image 152 of the 1920 x 1080 test-split set of seed 45700 (rule 40's seen sets): a 16 px circle
+    # painted red on dark teal, gray contrast 5. Its gray fit settles 2.3 px off at sigma 0.011 px,
+    # where the gray shows no four-sector pattern at all (centre reach 0.00), and wins on its sigma;
+    # its paint fit lies 1.9 px from it (under colour_fit_max_apart_px) and 0.6 px from the truth.
+    # Opt-in: rule 40 found no such case on its fresh sets
+    from photo_helpers import write_generated_jpeg
+
+    from cpdetect.centre_reach import CENTRE_REACH_MIN, centre_reach
+
+    path = tmp_path / "painted.jpg"
+    markers = write_generated_jpeg(path, 152, 45700, width=1920, height=1080, split="test")
+    t = min(markers, key=lambda m: math.hypot(m.x - 1061.06, m.y - 133.75))
+    assert t.type == "circle" and abs(t.extra["contrast"]) < 10
+
+    def near(**settings):
+        dets = ClassicalDetector(**settings).detect(path).detections
+        return [d for d in dets if math.hypot(d.x - t.x, d.y - t.y) < 5], dets
+
+    (old,), old_all = near(colour_centre_reach=False)
+    gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    assert math.hypot(old.x - t.x, old.y - t.y) > 1.5 and old.sigma_px < 0.05
+    assert centre_reach(gray, old.x, old.y, old.radius_px) < CENTRE_REACH_MIN
+    (new,), new_all = near(colour_centre_reach=True)
+    assert math.hypot(new.x - t.x, new.y - t.y) < 1.0
+    assert new.sigma_px > 0.1  # the paint fit's own, at JPEG's half-resolution colour
+    # the gray markers of the image are left as they were
+    assert sorted((d.x, d.y) for d in old_all if d is not old) == sorted((d.x, d.y) for d in new_all if d is not new)
+
+
+def test_the_colour_pass_refuses_a_centre_the_pattern_reaches_in_neither_image(tmp_path):
+    # image 51 of the 45 MP test-split set of seed 45800 (`--size 8192x5460 --radius-min 32`): a
+    # 95 px circle whose centre a grey band hides, found by the colour pass and fitted inside the
+    # band, 19 px off at sigma 0.31 px; neither the gray nor the paint fit has the pattern at its centre
+    from photo_helpers import write_generated_jpeg
+
+    path = tmp_path / "hidden.jpg"
+    markers = write_generated_jpeg(path, 51, 45800, width=8192, height=5460, radius_min_px=32, split="test")
+    hidden = [m for m in markers if m.extra["centre_hidden"]]
+    (t,) = hidden
+    other = [m for m in markers if m is not t]
+
+    def split(dets):
+        at = [d for d in dets if math.hypot(d.x - t.x, d.y - t.y) < 0.3 * t.radius_px]
+        found = [d for d in dets if any(math.hypot(d.x - m.x, d.y - m.y) < 0.5 for m in other)]
+        return at, found
+
+    at, found = split(ClassicalDetector(colour_centre_reach=False).detect(path).detections)
+    assert len(at) == 1 and math.hypot(at[0].x - t.x, at[0].y - t.y) > 10 and at[0].sigma_px < 1.0
+    trace: list = []
+    at2, found2 = split(ClassicalDetector(colour_centre_reach=True).detect(path, trace=trace).detections)
+    assert at2 == [] and [(d.x, d.y) for d in found2] == [(d.x, d.y) for d in found] and len(found) == len(other)
+    assert any(r["stage"] == "centre reach" and r["pass"] == "colour"
+               and math.hypot(r["x"] - t.x, r["y"] - t.y) < 0.3 * t.radius_px for r in trace)
+
+
+@pytest.mark.parametrize("marker_type", MARKER_TYPES)
+def test_a_painted_marker_keeps_its_centre_with_the_colour_centre_reach(marker_type):
+    # red on grey, next to no gray contrast: the paint fit reaches its centre and is kept, as before
+    img = painted_marker((150.3, 118.8), 28.0, (240, 320), marker_type)
+    (old,) = get_detector("classical", colour_centre_reach=False).detect(img).detections
+    (new,) = get_detector("classical", colour_centre_reach=True).detect(img).detections
+    assert np.hypot(new.x - 150.3, new.y - 118.8) < 0.1 and new.type == marker_type
+    assert (new.x, new.y, new.sigma_px) == (old.x, old.y, old.sigma_px)
+
+
+def test_the_colour_centre_reach_setting_is_checked():
+    from cpdetect.errors import UsageError
+
+    for bad in (1, "yes", None):
+        with pytest.raises(UsageError, match=r"setting colour_centre_reach=.*: expected bool"):
+            get_detector("classical", colour_centre_reach=bad)
+    assert get_detector("classical", colour_centre_reach=True).settings.colour_centre_reach is True
+
+
 def test_level_sampling_of_a_ramp_inside_and_outside_the_image():
     # a ramp is sampled exactly by bilinear interpolation on every level (area reduction keeps it a
     # ramp), in full-resolution coordinates; points beyond half a pixel past the border are NaN
