@@ -279,6 +279,11 @@ class ClassicalSettings:
         11 -> 7 for 1,165 -> 1,164 true (the one lost had been found 2 px off its partly covered
         centre). An earlier rule without the blur gate (cut 0.3) failed on seeds 10200 + 10300: two
         false markers fewer for four small motion-blurred markers lost.
+    max_blurred_centre_offset: where the edge blur is ``centre_offset_max_blur_px`` or more, drop a
+        marker whose grey at the refined centre is brighter than its sectors' mean by more than this
+        (units of the contrast; None: off). Motion blur along a sector's bisector moves the centre's
+        grey either way, which is why ``max_centre_offset`` stops at that blur; two dark blobs beside a
+        bright gap (perforated plates, holes) stay brighter at the gap however blurred.
     outline_r0_ratio: an outline whose equal-area radius is more than this many times off (either
         way) the rms distance r0 of the boundary points it was built from gives way to another
         outline model (square, circle, diagonal) on the same points whose outline agrees, by
@@ -427,6 +432,7 @@ class ClassicalSettings:
     saddle_axes: bool = True
     max_centre_offset: float | None = 0.25
     centre_offset_max_blur_px: float = 1.2
+    max_blurred_centre_offset: float | None = None
     max_verified: int = 1000
     outline_r0_ratio: float | None = None
     robust_ellipse: bool = False
@@ -476,6 +482,8 @@ class ClassicalSettings:
             raise ValueError("max_centre_offset must be positive (in units of the contrast) or null (off)")
         if not self.centre_offset_max_blur_px > 0:
             raise ValueError("centre_offset_max_blur_px must be positive (pixels)")
+        if self.max_blurred_centre_offset is not None and not self.max_blurred_centre_offset > 0:
+            raise ValueError("max_blurred_centre_offset must be positive (in units of the contrast) or null (off)")
         if self.outline_r0_ratio is not None and not self.outline_r0_ratio > 1.0:
             raise ValueError("outline_r0_ratio must be over 1 or null (off)")
         if self.robust_ellipse and self.outline_r0_ratio is None:
@@ -2331,9 +2339,7 @@ class _Scan:
                     mark(ci, "centre reach", v)
                     rejected += 1
                     continue
-                if paint_search is None and s.max_centre_offset is not None and abs(centre_level_offset(
-                        gray, ref.x, ref.y, v.levels, v.dark_share)) > s.max_centre_offset \
-                        and edge_blur_px(gray, ref.x, ref.y, v.radius) < s.centre_offset_max_blur_px:
+                if paint_search is None and _centre_grey_refused(gray, ref.x, ref.y, v, s):
                     mark(ci, "centre grey", v)
                     rejected += 1
                     continue
@@ -2419,6 +2425,23 @@ def saddle_neighbours(near: np.ndarray, contrast: np.ndarray, own: float, order:
             heads.append(int(j))
             out.append(int(j))
     return np.asarray(out, dtype=near.dtype)
+
+
+def _centre_grey_refused(gray: np.ndarray, x: float, y: float, v: "_Verified", s: ClassicalSettings) -> bool:
+    """The centre-grey test at the refined centre (x, y) of ``v`` (full-resolution pixels): the grey
+    there further than ``max_centre_offset`` from the sectors' mean either way where the edge blur is
+    under ``centre_offset_max_blur_px``, or brighter by more than ``max_blurred_centre_offset`` where
+    it is not (NaN offsets pass)."""
+    sharp_cut, blurred_cut = s.max_centre_offset, s.max_blurred_centre_offset
+    if sharp_cut is None and blurred_cut is None:
+        return False
+    off = centre_level_offset(gray, x, y, v.levels, v.dark_share)
+    sharp_out = sharp_cut is not None and abs(off) > sharp_cut
+    bright_out = blurred_cut is not None and off > blurred_cut
+    if not (sharp_out or bright_out):
+        return False
+    sharp = edge_blur_px(gray, x, y, v.radius) < s.centre_offset_max_blur_px
+    return sharp_out if sharp else bright_out
 
 
 def _fits_apart(a, b, max_apart_px: float | None) -> bool:

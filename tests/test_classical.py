@@ -1333,6 +1333,59 @@ def test_the_grey_at_the_centre_rejects_holes_and_a_tile_corner(index, seed, fal
         assert len(m) == 1 and m[0].type == t.type and math.hypot(m[0].x - t.x, m[0].y - t.y) < 0.1
 
 
+def test_blurred_holes_are_refused_by_the_bright_grey_between_them():
+    # image 187 of the 640 x 480 test-split set of seed 45500 (rule 41's seen sets): two blurred dark
+    # ovals beside a bright gap, kept as a square of radius 41 px at score 0.90. The centre-grey test
+    # leaves it alone, its edge blur (2.8 px) being over centre_offset_max_blur_px, but the gap's grey
+    # lies 0.43 of the contrast above the sectors' mean
+    img, markers = generated_photo(187, 45500, split="test")
+    hole = (579.0, 122.0)
+
+    def split(dets):
+        at = [d for d in dets if math.hypot(d.x - hole[0], d.y - hole[1]) < 10]
+        true = [d for d in dets if min(math.hypot(d.x - m.x, d.y - m.y) for m in markers) < 0.3]
+        return at, true
+
+    at, true = split(ClassicalDetector(max_blurred_centre_offset=None).detect(img).detections)
+    assert len(at) == 1 and len(true) == len(markers) >= 1
+    trace: list = []
+    at2, true2 = split(ClassicalDetector(max_blurred_centre_offset=0.35).detect(img, trace=trace).detections)
+    assert at2 == [] and [(d.x, d.y) for d in true2] == [(d.x, d.y) for d in true]
+    assert any(t["stage"] == "centre grey" and math.hypot(t["x"] - hole[0], t["y"] - hole[1]) < 10 for t in trace)
+
+
+@pytest.mark.parametrize("marker_type", MARKER_TYPES)
+@pytest.mark.parametrize("blur", ["gauss2", "gauss3.5", "motion+", "motion-"])
+def test_blurred_markers_keep_their_centre_grey(marker_type, blur):
+    # a marker's centre stays at its sectors' mean grey under any isotropic blur, and a 7 px streak
+    # along a bisector moves it by 0.18-0.3 of the contrast (either way): under the 0.35 of the
+    # brighter side that max_blurred_centre_offset refuses at rule 41's value
+    from cpdetect.centre_reach import centre_level_offset, edge_blur_px
+    from cpdetect.synth_images import _motion_kernel
+
+    img, c, r, _ = tilted_scene(marker_type, (161.3, 118.6), 30.0, 30.0, 0.7, 0.35, seed=4)
+    if blur.startswith("gauss"):
+        img = cv2.GaussianBlur(img, (0, 0), float(blur[5:]))
+    else:
+        bisector = 0.35 + (np.pi / 4 if marker_type != "diagonal" else 0.0) + (np.pi / 2 if blur == "motion-" else 0.0)
+        img = cv2.filter2D(img, -1, _motion_kernel(7.0, bisector), borderType=cv2.BORDER_REFLECT)
+    assert edge_blur_px(img, c[0], c[1], r) > 1.2
+    (old,) = ClassicalDetector(max_blurred_centre_offset=None).detect(img).detections
+    (new,) = ClassicalDetector(max_blurred_centre_offset=0.35).detect(img).detections
+    assert (new.x, new.y, new.type) == (old.x, old.y, old.type) and math.hypot(new.x - c[0], new.y - c[1]) < 0.5
+    assert centre_level_offset(img, c[0], c[1], (30.0, 215.0), 0.5) < 0.35
+
+
+def test_the_blurred_centre_offset_setting_is_checked():
+    from cpdetect.errors import UsageError
+
+    for bad in (0, -0.2):
+        with pytest.raises(UsageError, match="max_blurred_centre_offset must be positive"):
+            get_detector("classical", max_blurred_centre_offset=bad)
+    assert get_detector("classical", max_blurred_centre_offset=None).settings.max_blurred_centre_offset is None
+    assert get_detector("classical", max_blurred_centre_offset=0.4).settings.max_blurred_centre_offset == 0.4
+
+
 def test_robust_ellipse_fit_drops_a_stray_boundary_point():
     # two opposite quarter arcs of a circle of radius 10 about (50, 40) (the boundary of a circle
     # marker's dark sectors) and one ray that ended 3 px from the centre
