@@ -1352,6 +1352,7 @@ def test_blurred_holes_are_refused_by_the_bright_grey_between_them():
     at2, true2 = split(ClassicalDetector(max_blurred_centre_offset=0.35).detect(img, trace=trace).detections)
     assert at2 == [] and [(d.x, d.y) for d in true2] == [(d.x, d.y) for d in true]
     assert any(t["stage"] == "centre grey" and math.hypot(t["x"] - hole[0], t["y"] - hole[1]) < 10 for t in trace)
+    assert split(ClassicalDetector().detect(img).detections)[0] == []  # the default since rule 41
 
 
 @pytest.mark.parametrize("marker_type", MARKER_TYPES)
