@@ -89,10 +89,11 @@ Pipeline for one image:
    train101: 1 / 0 / 4 false markers fewer; the one marker lost had been found 3.9 px off its
    partly covered centre), and the grey at the centre must be the sectors' mean
    (:func:`cpdetect.centre_reach.centre_level_offset`, ``max_centre_offset``; over 1.2 px of edge
-   blur only its brighter side, ``max_blurred_centre_offset``; checked after the fit below). Then one more symmetry fit on an ellipse of the outline's shape, as large
-   as the outline allows (:func:`cpdetect.refine.outline_window`), replaces the centre where its
-   sigma is smaller: the radius-sized disc must fit a pattern at any tilt, so on most markers it
-   uses a fraction of the signal (train-split dev505 / dev808: centre error 0.053 / 0.048 ->
+   blur only its brighter side, ``max_blurred_centre_offset``; checked after the fit below).
+   Then one more symmetry fit on an ellipse of the outline's shape, as large as the outline allows
+   (:func:`cpdetect.refine.outline_window`), replaces the centre where its sigma is smaller: the
+   radius-sized disc must fit a pattern at any tilt, so on most markers it uses a fraction of the
+   signal (train-split dev505 / dev808: centre error 0.053 / 0.048 ->
    0.050 / 0.045 px mean, p95 0.144 / 0.152 -> 0.140 / 0.129 px, the same detections).
 6. **Colour pass** (colour images, ``colour_pass``): steps 2-5 again on the *paint* image, the max of
    the three channels at search resolution, for markers painted red or orange on black whose
