@@ -290,8 +290,8 @@ class ClassicalSettings:
         640 x 480): on fresh 640 x 480 46300 / 46400, 1920 x 1080 46500 (600 images each) and 45 MP
         46600 (72) 1,120 / 1,146 / 1,149 / 133 markers found before and after, false 9 / 5 / 15 / 0
         -> 8 / 4 / 13 / 0 (three pairs of holes and a window), types and centres the same, +2.3 %
-        time per image at 640 x 480 (rule 40's run, which changed no detection, measured the same
-        +2.2 %: the order the two evaluations ran in). Chosen on seen sets (13,328 true and 110 false
+        time per image at 640 x 480 (+0.4 / +4.7 % by set, though the test measures nothing new: two
+        runs of the same settings side by side on 46400 differed by 0.5 %). Chosen on seen sets (13,328 true and 110 false
         gray-pass markers kept): over 1.2 px of blur no true marker's centre was more than 0.35 above
         its sectors' mean, 19 false ones' more than 0.4.
     outline_r0_ratio: an outline whose equal-area radius is more than this many times off (either
