@@ -125,6 +125,7 @@ from .centre_reach import CENTRE_REACH_MIN, centre_level_offset, centre_reach, e
 from .detector import as_gray_uint8, settings_from_dataclass
 from .imageio import chroma_image, paint_image
 from .refine import METHODS, refine_center, refine_center_coarse_to_fine, refine_in_outline
+from .checker_lines import edges_running_on
 from .tag_grid import grid_cells, is_tag_grid, is_tag_lattice, lattice_cells
 from .types import DetectionResult, MarkerDetection
 from .xcorner import build_pyramid, find_candidates
@@ -392,6 +393,14 @@ class ClassicalSettings:
         better on fresh 640 x 480 45900 / 46000, 1920 x 1080 46100 (600 images each) and 45 MP 46200
         (72), and none changed: the same 3,687 markers, 29 false ones, types and centres (those two
         cases were the only ones on 82 colour-pass detections of ten seen sets).
+    max_edges_running_on: a marker is dropped ("edges run on") where this many or more of its four
+        sector edges run on past its outline (:func:`cpdetect.checker_lines.edges_running_on`: a step
+        of the edge's sign across its line at 1.3 to 3 times the outline's distance along it), as a
+        checkerboard's lines run on to the next corners. The single-saddle test finds those corners
+        only within 1.7 radii; where a cast shadow or shading closes the outline well inside the
+        cells they lie farther out (a seen 45 MP set, 47100/61: a shadow edge through a row of a
+        board's corners, five 17-31 px "diagonal" markers in 230 px cells). Gray pass only. None: off; 5: measured
+        (the trace's ``edges`` on kept markers) but never dropped.
     early_score_cut: a verification whose early score (:func:`early_score`: P(the full verification
         scores at least EARLY_TARGET_SCORE) from the core's measures and the sectors' rough
         boundaries, trees fitted on train-split images by bench/fit_early_score.py) is under this
@@ -453,6 +462,7 @@ class ClassicalSettings:
     tag_grid_min_each: int | None = 3
     tag_lattice: bool = True
     colour_centre_reach: bool = False
+    max_edges_running_on: int | None = None
     early_score_cut: float = 0.0
 
     def __post_init__(self) -> None:
@@ -511,6 +521,11 @@ class ClassicalSettings:
         if self.saddle_alike_to not in SADDLE_ALIKE_TO:
             raise ValueError(f"saddle_alike_to must be one of {', '.join(SADDLE_ALIKE_TO)}, "
                              f"got {self.saddle_alike_to!r}")
+        if self.max_edges_running_on is not None and not (isinstance(self.max_edges_running_on, int)
+                                                          and not isinstance(self.max_edges_running_on, bool)
+                                                          and 1 <= self.max_edges_running_on <= 5):
+            raise ValueError(f"max_edges_running_on must be an integer in [1, 5] (5: measure only) or null (off), "
+                             f"got {self.max_edges_running_on!r}")
         if not 0.0 <= self.early_score_cut < 1.0:
             raise ValueError(f"early_score_cut must be in [0, 1) (0: off), got {self.early_score_cut!r}")
         if not 0.0 <= self.outline_window <= 2.0:
@@ -649,6 +664,7 @@ class _Verified:
     outline: np.ndarray  # (k, 2) full-res polygon of the pattern
     levels: tuple[float, float] = (0.0, 255.0)  # dark and bright grey levels
     dark_share: float = 0.5  # the share of the full turn the dark sectors take
+    edges_on: int | None = None  # sector edges running on past the outline, where measured
 
 
 def _label_first(why: np.ndarray, idx: np.ndarray, failed: tuple, labels: tuple) -> None:
@@ -2266,6 +2282,8 @@ class _Scan:
                    "contrast": float(c.contrast), "pass": pass_name if colour else "gray", "stage": stage}
             if v is not None:
                 row.update(score=float(v.score), type=v.type, radius_px=float(v.radius))
+                if v.edges_on is not None:
+                    row["edges"] = v.edges_on
             self.trace.append(row)
 
         if self.trace is not None:
@@ -2370,6 +2388,14 @@ class _Scan:
                 mark(ci, "tag lattice", v)
                 rejected += 1
                 continue
+            # the gray pass only: a colour pass's levels are the colour image's, at its search scale
+            if s.max_edges_running_on is not None and paint_search is None:
+                n_on = edges_running_on(gray, v.x, v.y, v.radius, v.levels, v.outline)
+                if n_on >= s.max_edges_running_on:
+                    mark(ci, "edges run on", v)
+                    rejected += 1
+                    continue
+                v = replace(v, edges_on=n_on)
             if v.score < min_score:
                 mark(ci, "held", v)
                 if sigma <= s.held_max_sigma_px:

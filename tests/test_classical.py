@@ -1645,3 +1645,55 @@ def test_a_board_corner_verified_from_a_coarse_level_meets_its_own_board(tmp_pat
         # the three markers found either way (the fourth, 37 % covered and its centre hidden, is not)
         found = [d for d in dets if min(math.hypot(d.x - x, d.y - y) for x, y in truth) < 0.1]
         assert len(found) == 3 and len(dets) == 3 + kept
+
+
+def test_a_shadow_through_a_checkerboards_corners_leaves_no_marker_with_edges_running_on(tmp_path):
+    # image 61 of the 45 MP test-split set of seed 47100 (`--size 8192x5460 --radius-min 32`): a
+    # checkerboard of 230 px cells under a cast shadow whose edge runs through a row of its corners;
+    # the shadow closes each corner's outline at 17-31 px, far inside the single-saddle test's reach
+    from photo_helpers import write_generated_jpeg
+
+    path = tmp_path / "board.jpg"
+    markers = write_generated_jpeg(path, 61, 47100, width=8192, height=5460, radius_min_px=32, split="test")
+
+    def split(dets):
+        true = [d for d in dets if any(math.hypot(d.x - m.x, d.y - m.y) < 1.0 for m in markers)]
+        return true, [d for d in dets if d not in true]
+
+    true_old, false_old = split(ClassicalDetector(max_edges_running_on=None).detect(path).detections)
+    board = [d for d in false_old if d.radius_px < 40 and d.type == "diagonal" and d.x < 1100 and 2900 < d.y < 3300]
+    assert len(board) >= 4 and len(true_old) >= 3  # of 4 (one 84 px circle missed)
+    trace: list = []
+    true_new, false_new = split(ClassicalDetector(max_edges_running_on=4).detect(path, trace=trace).detections)
+    assert [(d.x, d.y, d.type) for d in true_new] == [(d.x, d.y, d.type) for d in true_old]
+    gone = [d for d in board if all(math.hypot(d.x - e.x, d.y - e.y) > 3 for e in false_new)]
+    assert len(gone) >= 4 and len(false_new) == len(false_old) - len(gone)
+    dropped = [r for r in trace if r["stage"] == "edges run on"]
+    assert len(dropped) >= len(gone) and all(r["pass"] == "gray" for r in dropped)
+    # measured only (5): the same detections, and the kept markers' count of edges in the trace
+    trace5: list = []
+    again = ClassicalDetector(max_edges_running_on=5).detect(path, trace=trace5).detections
+    assert sorted((d.x, d.y) for d in again) == sorted((d.x, d.y) for d in true_old + false_old)
+    kept = [r for r in trace5 if r["stage"] == "kept" and r["pass"] == "gray"]
+    assert sum(r["edges"] == 4 for r in kept) >= 4
+    assert all(r["edges"] == 0 for r in kept if any(math.hypot(r["x"] - m.x, r["y"] - m.y) < 3 for m in markers))
+
+
+@pytest.mark.parametrize("marker_type", MARKER_TYPES)
+@pytest.mark.parametrize("tilt", [0.0, 50.0])
+def test_markers_keep_their_edges_inside_their_outline(marker_type, tilt):
+    img, c, r, _ = tilted_scene(marker_type, (160.3, 119.6), 30.0, tilt, 0.7, 0.4, margin=0.2)
+    trace: list = []
+    (d,) = ClassicalDetector(max_edges_running_on=1).detect(img, trace=trace).detections
+    assert math.hypot(d.x - c[0], d.y - c[1]) < 0.1 and d.type == marker_type
+    assert [r["edges"] for r in trace if r["stage"] == "kept"] == [0]
+
+
+def test_the_edges_running_on_setting_is_checked():
+    from cpdetect.errors import UsageError
+
+    for bad in (0, 6, 2.5, True, "4"):
+        with pytest.raises(UsageError, match=r"max_edges_running_on"):
+            get_detector("classical", max_edges_running_on=bad)
+    assert get_detector("classical", max_edges_running_on=4).settings.max_edges_running_on == 4
+    assert get_detector("classical").settings.max_edges_running_on is None
