@@ -35,8 +35,8 @@ PRESENT_MIN = 10  # of the len(ALONG) places along an edge: then it runs on (one
 def sector_edges(gray: np.ndarray, x: float, y: float, radius: float,
                  levels: tuple[float, float]) -> tuple[np.ndarray, np.ndarray] | None:
     """The four sector edges of the candidate at (x, y): their directions (radians) and signs (+1
-    where the grey rises across the edge counter-clockwise in the image, that is towards larger
-    angles, -1 where it falls). Read where rings of EDGE_RINGS times ``radius`` cross the middle of
+    where the grey rises across the edge towards larger angles, clockwise on the screen with y
+    down, -1 where it falls). Read where rings of EDGE_RINGS times ``radius`` cross the middle of
     the dark and bright ``levels``; None unless both rings cross it exactly four times, alternately,
     at directions that agree within 10 degrees."""
     mid = 0.5 * (float(levels[0]) + float(levels[1]))
@@ -68,7 +68,7 @@ def edges_running_on(gray: np.ndarray, x: float, y: float, radius: float, levels
     at PRESENT_MIN or more of the places ALONG times the outline's distance along the edge (``radius``
     where no ``outline``, a closed (k, 2) polygon around (x, y), is given), a step across the edge's
     line of at least STEP_MIN of the contrast, with the edge's own sign, within ACROSS of the line.
-    Places outside the image count as no step (a marker at the border keeps its edges). 0 where the
+    Samples outside the image count as no step (a marker at the border keeps its edges). 0 where the
     edges cannot be read."""
     got = sector_edges(gray, x, y, radius, levels)
     C = float(levels[1]) - float(levels[0])
