@@ -122,10 +122,10 @@ from typing import Any
 import numpy as np
 
 from .centre_reach import CENTRE_REACH_MIN, centre_level_offset, centre_reach, edge_blur_px
+from .checker_lines import edges_running_on
 from .detector import as_gray_uint8, settings_from_dataclass
 from .imageio import chroma_image, paint_image
 from .refine import METHODS, refine_center, refine_center_coarse_to_fine, refine_in_outline
-from .checker_lines import edges_running_on
 from .tag_grid import grid_cells, is_tag_grid, is_tag_lattice, lattice_cells
 from .types import DetectionResult, MarkerDetection
 from .xcorner import build_pyramid, find_candidates
@@ -399,9 +399,10 @@ class ClassicalSettings:
         checkerboard's lines run on to the next corners. The single-saddle test finds those corners
         only within 1.7 radii; where a cast shadow or shading closes the outline well inside the
         cells they lie farther out (a seen 45 MP set, 47100/61: a shadow edge through a row of a
-        board's corners, five 17-31 px "diagonal" markers in 230 px cells). Gray pass only. None: off; 5: measured
-        (the trace's ``edges`` on kept markers) but never dropped. On ten seen sets (46000, 46200-47100;
-        9,419 true and 67 false gray-pass markers kept) 4 drops four of those five and no true marker.
+        board's corners, five 17-31 px "diagonal" markers in 230 px cells). Gray pass only. None:
+        off; 5: measured (the trace's ``edges`` on kept markers) but never dropped. On ten seen sets
+        (46000, 46200-47100; 9,419 true and 67 false gray-pass markers kept) 4 drops four of those
+        five and no true marker.
         Off by default: rule 43 (stop 79, written before its sets existed) asked for at least one false
         marker fewer on fresh 640 x 480 47200 / 47300 / 47400, 1920 x 1080 47500 (600 images each) and
         45 MP 47600 / 47700 / 47800 (72 each), and no detection changed: 5,188 true and 30 false
@@ -2228,9 +2229,10 @@ class _Scan:
     "beside a found marker", "verify: <reason>",
     "score" (under the pass's cut; with ``score``), "single saddle", "centre reach", "centre grey",
     "score after refinement" (the refinement failed and the score, cut by 0.7, fell under), "tag grid"
-    (``tag_grid_min_each``), "tag lattice" (``tag_lattice``), "held" (``held_score``: added after every pass unless beside a kept marker)
-    or "kept";
-    verified ones also carry ``score``, ``type`` and ``radius_px``."""
+    (``tag_grid_min_each``), "tag lattice" (``tag_lattice``), "edges run on" (``max_edges_running_on``),
+    "held" (``held_score``: added after every pass unless beside a kept marker) or "kept";
+    verified ones also carry ``score``, ``type`` and ``radius_px``, and where ``max_edges_running_on``
+    measured them (gray pass) ``edges``, the number of sector edges running on."""
 
     def __init__(self, gray: np.ndarray, k: int, settings: ClassicalSettings, accepted: list,
                  trace: list | None = None):
