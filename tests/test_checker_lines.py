@@ -115,4 +115,5 @@ def test_no_edges_on_a_plain_wall():
     assert edges_running_on(img, 100.0, 100.0, 20.0, LEVELS, circle(100, 100, 20)) == 0
     # a candidate outside the image, or levels that do not differ, count none either
     assert edges_running_on(img, -50.0, 100.0, 20.0, LEVELS) == 0
-    assert edges_running_on(board(120, 0.0, (100.0, 100.0), shape=(200, 200)), 100.0, 100.0, 20.0, (90.0, 90.0)) == 0
+    corner = board(120, 0.0, (100.0, 100.0), shape=(200, 200))
+    assert edges_running_on(corner, 100.0, 100.0, 20.0, (90.0, 90.0)) == 0
