@@ -16,8 +16,9 @@ within max(3 px, 0.35 radius) of its true centre:
 - ``unverified``: past ``max_verified``;
 - ``verify: <reason>``: the marker model does not fit (the most frequent reason among them);
 - ``score``: verified, but scored under the cut; ``beside a found marker``: skipped near one;
-- ``single saddle``, ``centre reach``, ``centre grey``, ``score after refinement``: the tests after
-  the verification, in the scan's order;
+- ``single saddle``, ``centre reach``, ``centre grey``, ``score after refinement``, ``tag grid``,
+  ``tag lattice``, ``edges run on``: the tests after the verification, in the scan's order;
+- ``held``: scored under the cut but held aside (``held_score``) and not added;
 - ``kept``: a marker was found there, but not matched to this truth (too far off, or matched to
   another).
 
@@ -39,9 +40,10 @@ from detect_bench import COVERED_FRAC as COVERED  # the occluded share over whic
 RESULTS = Path(__file__).parent / "results" / "classical_miss_stages.json"
 TRUTH_FIELDS = ("radius_px", "type", "centre_hidden", "occluded_frac", "blur_px", "contrast", "tilt_deg", "margin",
                 "texture")
-# furthest first: the order of the scan's tests (cpdetect.classical._Scan.run)
-ORDER = ("kept", "score after refinement", "centre grey", "centre reach", "single saddle", "beside a found marker",
-         "score", "verify", "unverified", "prefilter")
+# furthest first: the order of the scan's tests (cpdetect.classical._Scan.run); "held" is a candidate
+# scored under the cut and held aside (``held_score``), added after every pass unless beside a kept marker
+ORDER = ("kept", "held", "edges run on", "tag lattice", "tag grid", "score after refinement", "centre grey",
+         "centre reach", "single saddle", "beside a found marker", "score", "verify", "unverified", "prefilter")
 
 
 def near_radius(radius_px: float) -> float:

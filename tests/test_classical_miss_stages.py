@@ -114,3 +114,24 @@ def test_candidates_past_the_verification_cap_are_named_unverified():
     assert len(passed) >= 2
     assert sum(t["stage"] == "unverified" for t in capped) == len(passed) - 1
     assert res.extras["unverified"] == len(passed) - 1
+
+
+def test_every_stage_the_scan_names_is_ranked():
+    # the tag tests (tag_lattice is on by default) and the opt-in ones end a candidate's scan too:
+    # a miss beside such a candidate is put to that stage, not lost to an unknown one
+    truth = {"x": 100.0, "y": 50.0, "radius_px": 20.0}
+    for stage in ("tag grid", "tag lattice", "edges run on", "held"):
+        t = [{"x": 101.0, "y": 50.0, "stage": stage, "score": 0.9},
+             {"x": 99.0, "y": 51.0, "stage": "single saddle", "score": 0.95}]
+        assert stages.stage_of(t, truth)["stage"] == stage
+    order = list(stages.ORDER)
+    assert order.index("edges run on") < order.index("tag lattice") < order.index("tag grid") \
+        < order.index("score after refinement")
+
+
+def test_a_marker_keeps_its_stage_under_the_edges_test_at_its_least_cut():
+    # a marker's edges end at its outline: even at the least cut (1 edge) it is kept, its trace
+    # row counting 0 edges
+    res, trace, got = _traced(max_edges_running_on=1)
+    assert len(res.detections) == 1 and got["stage"] == "kept"
+    assert [t["edges"] for t in trace if t["stage"] == "kept"] == [0]
