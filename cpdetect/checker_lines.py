@@ -75,7 +75,10 @@ def edges_running_on(gray: np.ndarray, x: float, y: float, radius: float, levels
     if got is None or not C > 0:
         return 0
     phi, sign = got
-    dist = np.full(4, float(radius)) if outline is None else _ray_distances(outline - [x, y], phi)
+    if outline is None:
+        dist = np.full(4, float(radius))
+    else:
+        dist = ray_distances(outline - [x, y], np.cos(phi), np.sin(phi))
     t = dist[:, None] * ALONG[None, :]  # (4, m) distances along each edge
     half = np.maximum(2.0, STEP_HALF * t)
     reach = ACROSS * t + 1.5
@@ -91,11 +94,12 @@ def edges_running_on(gray: np.ndarray, x: float, y: float, radius: float, levels
     return int((present.sum(axis=1) >= PRESENT_MIN).sum())
 
 
-def _ray_distances(poly: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """Distance from the origin to the polygon ``poly`` (k, 2, relative to the centre) along each
-    direction ``phi``; inf where a ray does not meet it."""
-    E = np.roll(poly, -1, 0) - poly
-    c, s = np.cos(phi)[:, None], np.sin(phi)[:, None]
+def ray_distances(poly: np.ndarray, cos: np.ndarray, sin: np.ndarray) -> np.ndarray:
+    """Distance from the origin to the polygon ``poly`` (k, 2, relative to the centre) along each ray
+    of direction (``cos``, ``sin``), all rays against all edges at once; inf where a ray does not
+    meet it."""
+    E = np.roll(poly, -1, 0) - poly  # edges p -> p + e
+    c, s = cos[:, None], sin[:, None]
     den = c * E[None, :, 1] - s * E[None, :, 0]
     with np.errstate(divide="ignore", invalid="ignore"):
         t = (poly[None, :, 0] * E[None, :, 1] - poly[None, :, 1] * E[None, :, 0]) / den
@@ -124,4 +128,4 @@ def _sample(gray: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
     return out
 
 
-__all__ = ["sector_edges", "edges_running_on"]
+__all__ = ["sector_edges", "edges_running_on", "ray_distances"]

@@ -122,7 +122,7 @@ from typing import Any
 import numpy as np
 
 from .centre_reach import CENTRE_REACH_MIN, centre_level_offset, centre_reach, edge_blur_px
-from .checker_lines import edges_running_on
+from .checker_lines import edges_running_on, ray_distances
 from .detector import as_gray_uint8, settings_from_dataclass
 from .imageio import chroma_image, paint_image
 from .refine import METHODS, refine_center, refine_center_coarse_to_fine, refine_in_outline
@@ -1916,15 +1916,7 @@ class _Verifier:
         ``square`` outline (``mtype``) must not lie in a dark field at the dark sectors' level all
         around either (two bright bit cells of a tag): that rejects in both cases."""
         # distance from the centre to the outline polygon along each ray
-        P = outline - np.array([x, y])
-        E = np.roll(P, -1, 0) - P  # edges p -> p + e, all rays against all edges at once
-        c, s = self.cos[:, None], self.sin[:, None]
-        den = c * E[None, :, 1] - s * E[None, :, 0]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = (P[None, :, 0] * E[None, :, 1] - P[None, :, 1] * E[None, :, 0]) / den
-            u = (P[None, :, 0] * s - P[None, :, 1] * c) / den
-        hit = (np.abs(den) >= 1e-12) & (t > 0) & (u >= -1e-9) & (u <= 1 + 1e-9)
-        dist = np.where(hit, t, np.inf).min(1)
+        dist = ray_distances(outline - np.array([x, y]), self.cos, self.sin)
         if not np.isfinite(dist).all():
             return "outline does not enclose the centre"
         # inside: a marker's sectors are solid out to the outline (the pixels of a tag's bit pattern
