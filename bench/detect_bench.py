@@ -13,7 +13,9 @@
    - our :func:`cpdetect.refine.refine_center` seeded the same way (isolates refinement).
 2. Two 45 MP JPEGs (8192x5460, six markers): ``cv2.imread(GRAYSCALE)`` time vs
    ``ClassicalDetector().detect(path)`` time (medians), and the detector's peak memory (VmHWM of a
-   fresh subprocess, minus that after importing the same modules). One has a test background
+   fresh subprocess, minus that after importing the same modules); in the same loop the time with
+   ``min_radius_px=16``, whose search is at 1/4 instead of the default's 1/2 (``min_search_radius_px``:
+   the default looks for markers from 8 px radius). One has a test background
    upscaled 8x (smooth, so it decodes about three times faster than a camera's JPEG of that size);
    the other a mosaic of test backgrounds at their own resolution (texture at every scale).
 
@@ -282,6 +284,9 @@ print(base, peak, n)
 """
 
 
+COARSE_MIN_RADIUS_PX = 16.0  # ClassicalSettings.min_radius_px for the 45 MP search at 1/4
+
+
 def bench_45mp(tmp: Path, seed: int, repeats: int, texture: bool = False) -> dict:
     import cv2
 
@@ -290,8 +295,11 @@ def bench_45mp(tmp: Path, seed: int, repeats: int, texture: bool = False) -> dic
     path = tmp / ("big45_texture.jpg" if texture else "big45.jpg")
     truth = make_45mp(path, seed, texture)
     det = ClassicalDetector()
-    t_read, t_det = [], []
-    res = None
+    # the search of before stop 80 (k = 4 at 45 MP), for markers of 16 px radius and more; the
+    # bench JPEGs' smallest marker is 27 px
+    coarse = ClassicalDetector(min_radius_px=COARSE_MIN_RADIUS_PX)
+    t_read, t_det, t_coarse = [], [], []
+    res = res_coarse = None
     for _ in range(repeats):
         t0 = time.perf_counter()
         g = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
@@ -300,10 +308,18 @@ def bench_45mp(tmp: Path, seed: int, repeats: int, texture: bool = False) -> dic
         t0 = time.perf_counter()
         res = det.detect(str(path))
         t_det.append(time.perf_counter() - t0)
-    found = []
-    for t in truth:
-        d = [math.hypot(m.x - t["x"], m.y - t["y"]) for m in res.detections]
-        found.append(bool(d) and min(d) <= max(3.0, 0.25 * t["radius_px"]))
+        t0 = time.perf_counter()
+        res_coarse = coarse.detect(str(path))
+        t_coarse.append(time.perf_counter() - t0)
+
+    def found_in(r) -> list[bool]:
+        out = []
+        for t in truth:
+            d = [math.hypot(m.x - t["x"], m.y - t["y"]) for m in r.detections]
+            out.append(bool(d) and min(d) <= max(3.0, 0.25 * t["radius_px"]))
+        return out
+
+    found, found_coarse = found_in(res), found_in(res_coarse)
     mem = {}
     for mode in ("detect", "imread"):
         out = subprocess.run([sys.executable, "-c", _MEM_CHILD, str(path), mode], capture_output=True, text=True,
@@ -317,7 +333,13 @@ def bench_45mp(tmp: Path, seed: int, repeats: int, texture: bool = False) -> dic
             "false_markers": len(res.detections) - int(sum(found)),
             "imread_gray_seconds_median": float(np.median(t_read)), "detect_seconds_median": float(np.median(t_det)),
             "ratio_detect_to_imread": float(np.median(t_det) / np.median(t_read)),
-            "search_factor": res.extras.get("search_factor"), "memory": mem}
+            "search_factor": res.extras.get("search_factor"), "memory": mem,
+            "coarse_search": {"settings": {"min_radius_px": COARSE_MIN_RADIUS_PX},
+                              "search_factor": res_coarse.extras.get("search_factor"),
+                              "detect_seconds_median": float(np.median(t_coarse)),
+                              "ratio_detect_to_imread": float(np.median(t_coarse) / np.median(t_read)),
+                              "found": int(sum(found_coarse)),
+                              "false_markers": len(res_coarse.detections) - int(sum(found_coarse))}}
 
 
 def main(argv=None) -> int:
@@ -388,6 +410,10 @@ def main(argv=None) -> int:
               f"ratio {j['ratio_detect_to_imread']:.2f}; found {j['found']}/{j['markers']}, false {j['false_markers']}; "
               f"peak RSS increase {j['memory']['detect']['increase_mb']:.0f} MB (imread alone "
               f"{j['memory']['imread']['increase_mb']:.0f} MB)")
+        c45 = j["coarse_search"]
+        print(f"   with min_radius_px={COARSE_MIN_RADIUS_PX:g} (search at 1/{c45['search_factor']} instead of "
+              f"1/{j['search_factor']}): detect {c45['detect_seconds_median']:.3f} s, ratio "
+              f"{c45['ratio_detect_to_imread']:.2f}; found {c45['found']}/{j['markers']}, false {c45['false_markers']}")
     print(f"written {args.out}")
     return 0
 

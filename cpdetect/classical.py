@@ -3,7 +3,8 @@
 Pipeline for one image:
 
 1. **Search image.** The gray image reduced by k in {1, 2, 4, 8} (area averaging) so that it has at
-   most ``search_megapixels``. For a JPEG file reduced by k > 1, libjpeg decodes the search image
+   most ``search_megapixels``, halved once where a marker of ``min_radius_px`` would be under
+   ``min_search_radius_px`` search pixels (:func:`search_factor`). For a JPEG file reduced by k > 1, libjpeg decodes the search image
    directly at 1/k (in colour, for the colour pass) and the candidates are found on it while the
    full-resolution gray image, needed from verification on, decodes in a second thread (45 MP:
    8-15 % less time; on 100 generated 12 MP images the same 186 markers found, 16 false instead
@@ -181,6 +182,24 @@ class ClassicalSettings:
     max_radius_frac: largest marker radius as a fraction of the image's short side.
     min_contrast: least bright-minus-dark difference of a marker (grey levels, 0..255).
     search_megapixels: size cap of the search image (sets the reduction k).
+    min_search_radius_px: the least radius, in search-image pixels, that a marker of ``min_radius_px``
+        should have: where ``min_radius_px / k`` is under this, the reduction k that
+        ``search_megapixels`` sets is halved (once at most: the search's cost grows with 1 / k^2).
+        None: the reduction of ``search_megapixels`` alone (before stop 80). The default 4 searches
+        8 px markers at k <= 2. From 12.8 MP up, ``search_megapixels`` alone gives k = 4, where a
+        marker of 8-12 px radius is 2-3 search pixels, and such markers were nearly never found
+        (train-split dev set 48300, 48 images of 8192 x 5460 with radii from 8 px: 0 of 8 at k = 4,
+        7 of 8 at k = 2). Rule 45 (stop 80, written before its sets existed): on fresh 45 MP sets
+        48800 / 48900 and 20 MP 49000 (5472 x 3648), ``--radius-min 8``, 48 images each, markers
+        found 89 / 63 / 72 -> 97 / 74 / 79 (radius 8-12 px: 2 of 22 -> 16 of 22); on 45 MP 49100
+        (``--radius-min 32``) 86 -> 91; false markers 6 -> 4 over the four; no marker lost, those
+        found both ways typed wrong 6 -> 4 and their centres the same within 0.004 px; 29 of the 31
+        newly found typed right; 1.36-1.59x the time per image. Its first trial, rule 44 (45 MP
+        48400 / 48500, 24 MP 48700, 45 MP 48600 at radius 32: 71 / 97 / 96 / 101 -> 86 / 102 / 111 /
+        102 found, false 8 -> 8, none lost), failed on a criterion that compared type accuracy over
+        different markers (48700 1.000 -> 0.982: 2 of the 15 newly found typed wrong). On the 45 MP
+        bench JPEGs 0.30 -> 0.50 s (smooth) and 0.29 -> 0.59 s (textured). Where the markers are
+        known to be larger, a larger ``min_radius_px`` (16 at 45 MP) gives the coarser search back.
     max_candidates_per_level: cap on X-corner candidates per pyramid level (the strongest kept). Texture
         often has more (train-split dev set dev41200, 640 x 480: 72 % of the images over 1,000 at level 0,
         median 1,879), and a faint marker's corner can rank past the cap. Raised for images searched at
@@ -436,6 +455,7 @@ class ClassicalSettings:
     max_radius_frac: float = 1.0 / 3.0
     min_contrast: float = 12.0
     search_megapixels: float = 3.2
+    min_search_radius_px: float | None = 4.0
     max_candidates_per_level: int = 1000
     min_score: float = 0.65
     min_candidate_score: float = CANDIDATE_SCORE_CUT
@@ -480,6 +500,8 @@ class ClassicalSettings:
             raise ValueError("min_contrast must be positive")
         if not self.search_megapixels >= 0.01:
             raise ValueError("search_megapixels must be >= 0.01")
+        if self.min_search_radius_px is not None and not 0.0 < self.min_search_radius_px <= 64.0:
+            raise ValueError(f"min_search_radius_px must be in (0, 64] or null (off), got {self.min_search_radius_px!r}")
         if not self.max_candidates_per_level >= 1:  # -1 sliced off the strongest list's last one
             raise ValueError("max_candidates_per_level must be >= 1")
         if not self.max_verified >= 1:
@@ -2111,10 +2133,7 @@ class ClassicalDetector:
         return (paint_image(bgr),) + ((chroma_image(bgr),) if self.settings.chroma_pass else ())
 
     def _search_factor(self, w: int, h: int) -> int:
-        for k in (1, 2, 4, 8):
-            if (w / k) * (h / k) <= self.settings.search_megapixels * 1e6:
-                return k
-        return 8
+        return search_factor(w, h, self.settings)
 
     def _search(self, search: np.ndarray) -> tuple:
         """The search image, its pyramid, the X-corner maps of its levels and the candidates."""
@@ -2210,6 +2229,17 @@ class ClassicalDetector:
             if img is not colour[-1]:  # what the next colour image's X-corners must beat
                 seen = [np.maximum(a, cv2.dilate(b, np.ones((3, 3), np.uint8))) for a, b in zip(seen, maps)]
         return extras
+
+
+def search_factor(w: int, h: int, settings: ClassicalSettings) -> int:
+    """The reduction k in {1, 2, 4, 8} of the search image of a w x h image: the least k that brings
+    it to ``search_megapixels``, then halved (once at most) while a marker of ``min_radius_px``
+    would be under ``min_search_radius_px`` search pixels; see :class:`ClassicalSettings`."""
+    k = next((k for k in (1, 2, 4, 8) if (w / k) * (h / k) <= settings.search_megapixels * 1e6), 8)
+    least = settings.min_search_radius_px
+    if least is not None and k > 1 and settings.min_radius_px / k < least:
+        k //= 2  # one step: the search image's cost grows with 1 / k^2
+    return k
 
 
 class _Scan:

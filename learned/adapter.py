@@ -1143,7 +1143,9 @@ class HMADetector:
         where its scan left each candidate)."""
         from cpdetect.classical import ClassicalDetector
 
-        return ClassicalDetector(probability_map=with_map).detect(image, trace=trace)
+        # the search reduction of before stop 80 (``min_search_radius_px`` None): hma's settings were
+        # chosen with the seeds and vetoes of that search (the finer one was not tried with hma)
+        return ClassicalDetector(probability_map=with_map, min_search_radius_px=None).detect(image, trace=trace)
 
     def _refined_centre(self, gray, labels, f, k, bbox, radius, centroid, loose: bool = False,
                         extra: list[tuple[float, float]] = ()) -> "_Centre | None":

@@ -360,7 +360,8 @@ def test_path_input_matches_array(det, tmp_path):
 
 
 def test_large_image_is_searched_at_reduced_scale(tmp_path):
-    det = get_detector("classical", search_megapixels=0.02)
+    # min_radius_px 16: 4 search pixels at k = 4 (at 8 px min_search_radius_px would halve k)
+    det = get_detector("classical", search_megapixels=0.02, min_radius_px=16.0)
     img = marker_image(center=(250.4, 180.6), radius=40.0, angle=0.3, shape=(400, 560))
     res = det.detect(img)
     assert res.extras["search_factor"] == 4
@@ -977,7 +978,7 @@ def test_painted_marker_found_from_files_at_full_and_reduced_search(tmp_path):
     cv2.imwrite(str(jpg), img, [cv2.IMWRITE_JPEG_QUALITY, 92])
     full = get_detector("classical").detect(str(png))
     # a JPEG searched at 1/4 size: the colour pass decodes it there directly
-    reduced = get_detector("classical", search_megapixels=0.02).detect(str(jpg))
+    reduced = get_detector("classical", search_megapixels=0.02, min_radius_px=16.0).detect(str(jpg))
     assert reduced.extras["search_factor"] == 4
     for res, tol in ((full, 0.05), (reduced, 0.2)):
         assert len(res.detections) == 1
@@ -1656,15 +1657,19 @@ def test_a_shadow_through_a_checkerboards_corners_leaves_no_marker_with_edges_ru
     path = tmp_path / "board.jpg"
     markers = write_generated_jpeg(path, 61, 47100, width=8192, height=5460, radius_min_px=32, split="test")
 
+    # searched at k = 4, as when the case was found (stop 79; the finer search of min_search_radius_px
+    # sees one more of the board's corners)
+    coarse = dict(min_search_radius_px=None)
+
     def split(dets):
         true = [d for d in dets if any(math.hypot(d.x - m.x, d.y - m.y) < 1.0 for m in markers)]
         return true, [d for d in dets if d not in true]
 
-    true_old, false_old = split(ClassicalDetector(max_edges_running_on=None).detect(path).detections)
+    true_old, false_old = split(ClassicalDetector(max_edges_running_on=None, **coarse).detect(path).detections)
     board = [d for d in false_old if d.radius_px < 40 and d.type == "diagonal" and d.x < 1100 and 2900 < d.y < 3300]
     assert len(board) >= 4 and len(true_old) >= 3  # of 4 (one 84 px circle missed)
     trace: list = []
-    true_new, false_new = split(ClassicalDetector(max_edges_running_on=4).detect(path, trace=trace).detections)
+    true_new, false_new = split(ClassicalDetector(max_edges_running_on=4, **coarse).detect(path, trace=trace).detections)
     assert [(d.x, d.y, d.type) for d in true_new] == [(d.x, d.y, d.type) for d in true_old]
     gone = [d for d in board if all(math.hypot(d.x - e.x, d.y - e.y) > 3 for e in false_new)]
     assert len(gone) >= 4 and len(false_new) == len(false_old) - len(gone)
@@ -1672,7 +1677,7 @@ def test_a_shadow_through_a_checkerboards_corners_leaves_no_marker_with_edges_ru
     assert len(dropped) >= len(gone) and all(r["pass"] == "gray" for r in dropped)
     # measured only (5): the same detections, and the kept markers' count of edges in the trace
     trace5: list = []
-    again = ClassicalDetector(max_edges_running_on=5).detect(path, trace=trace5).detections
+    again = ClassicalDetector(max_edges_running_on=5, **coarse).detect(path, trace=trace5).detections
     assert sorted((d.x, d.y) for d in again) == sorted((d.x, d.y) for d in true_old + false_old)
     kept = [r for r in trace5 if r["stage"] == "kept" and r["pass"] == "gray"]
     assert sum(r["edges"] == 4 for r in kept) >= 4
