@@ -315,6 +315,21 @@ class ClassicalSettings:
         runs of the same settings side by side on 46400 differed by 0.5 %). Chosen on seen sets (13,328 true and 110 false
         gray-pass markers kept): over 1.2 px of blur no true marker's centre was more than 0.35 above
         its sectors' mean, 19 false ones' more than 0.4.
+    type_template_max_radius_px: markers of at most this radius (pixels) whose type trees are unsure
+        (their second type's probability at least ``type_template_gate``) have their type weighed
+        again, after refinement, by fitting each type's whole outline, drawn in the frame of the
+        marker's half-lines and blurred as its edges are, to the grey levels
+        (:mod:`cpdetect.type_template`): reported is the type of the largest log probability less
+        ``type_template_weight`` x 100 x the relative excess of its residual (over the pixels where
+        the types' models differ) over the best type's. None: off, the default. 16 was chosen on the
+        train-split dev set 48100 and the seen test-split set 47300 (typed wrong 20 -> 16 and
+        24 -> 19); in about 7 % of the markers of 24 px or less the trees are unsure enough for it,
+        and it changes the reported type only. Two rules written before their fresh sets (stop 81)
+        failed: rule 46 (640 x 480 49200-49400, 1920 x 1080 49500, 45 MP 49600: typed wrong
+        56 -> 47, but +4.1 % time on 49200 at 40 ms a fit) and rule 47 (the fit 4x faster; 49700-
+        49900, 50000: 63 -> 63, 49900 16 -> 18). Over both, 27 types set right and 19 set wrong.
+    type_template_weight: see ``type_template_max_radius_px``.
+    type_template_gate: see ``type_template_max_radius_px``.
     outline_r0_ratio: an outline whose equal-area radius is more than this many times off (either
         way) the rms distance r0 of the boundary points it was built from gives way to another
         outline model (square, circle, diagonal) on the same points whose outline agrees, by
@@ -478,6 +493,9 @@ class ClassicalSettings:
     saddle_axes: bool = True
     max_centre_offset: float | None = 0.25
     centre_offset_max_blur_px: float = 1.2
+    type_template_max_radius_px: float | None = None
+    type_template_weight: float = 0.1
+    type_template_gate: float = 0.01
     max_blurred_centre_offset: float | None = 0.4
     max_verified: int = 1000
     outline_r0_ratio: float | None = None
@@ -529,6 +547,13 @@ class ClassicalSettings:
             raise ValueError("held_max_sigma_px must be positive")
         if self.max_centre_offset is not None and not self.max_centre_offset > 0:
             raise ValueError("max_centre_offset must be positive (in units of the contrast) or null (off)")
+        if self.type_template_max_radius_px is not None and not 0 < self.type_template_max_radius_px <= 256:
+            raise ValueError("type_template_max_radius_px must be in (0, 256] (pixels) or null (off), got "
+                             f"{self.type_template_max_radius_px!r}")
+        if not 0 < self.type_template_weight <= 100:
+            raise ValueError(f"type_template_weight must be in (0, 100], got {self.type_template_weight!r}")
+        if not 0 <= self.type_template_gate < 1:
+            raise ValueError(f"type_template_gate must be in [0, 1), got {self.type_template_gate!r}")
         if not self.centre_offset_max_blur_px > 0:
             raise ValueError("centre_offset_max_blur_px must be positive (pixels)")
         if self.max_blurred_centre_offset is not None and not self.max_blurred_centre_offset > 0:
@@ -694,6 +719,11 @@ class _Verified:
     levels: tuple[float, float] = (0.0, 255.0)  # dark and bright grey levels
     dark_share: float = 0.5  # the share of the full turn the dark sectors take
     edges_on: int | None = None  # sector edges running on past the outline, where measured
+    # the type trees' probabilities and the checker half-lines (radians, image frame) they were
+    # read in, for the template check of small markers (``type_template_max_radius_px``)
+    type_probs: dict | None = None
+    bounds: np.ndarray | None = None
+    widths: np.ndarray | None = None
 
 
 def _label_first(why: np.ndarray, idx: np.ndarray, failed: tuple, labels: tuple) -> None:
@@ -877,16 +907,23 @@ def _residuals_of(fits: dict[str, dict[int, tuple]], keep: float = 0.7) -> dict[
 
 
 def _type_of(x: float, y: float, bounds: np.ndarray, widths: np.ndarray, pts_by_sector: dict[int, np.ndarray],
-             radius: float, feats: dict, fallback: str, trees: bool, other: dict | None = None) -> str:
+             radius: float, feats: dict, fallback: str, trees: bool, other: dict | None = None,
+             probabilities: dict | None = None) -> str:
     """The type reported for a verified marker: the type trees' (:mod:`cpdetect.marker_type`) with
     ``trees``, else the type of the smallest :func:`type_residuals`; ``fallback`` (the outline
     model's type) when the boundary gives no checker-line frame. ``other``: the fit of the other
-    polarity's sectors (``pts_by_sector``, ``radius``, ``e_rel``), or None, for the trees."""
+    polarity's sectors (``pts_by_sector``, ``radius``, ``e_rel``), or None, for the trees.
+    ``probabilities``: a dict that receives the trees' probability of each type, where they decide."""
     if trees:
-        from .marker_type import predict_type, type_features
+        from .marker_type import type_features, type_probabilities
 
         f = type_features(x, y, bounds, widths, pts_by_sector, radius, feats, other)
-        return predict_type(f) if f is not None else fallback
+        if f is None:
+            return fallback
+        p = type_probabilities(f)
+        if probabilities is not None:
+            probabilities.update(p)
+        return max(p, key=p.get)
     residuals = type_residuals(x, y, bounds, widths, pts_by_sector)
     return min(residuals, key=residuals.get) if residuals else fallback
 
@@ -900,14 +937,21 @@ def line_frame_outline(x: float, y: float, bounds: np.ndarray, widths: np.ndarra
     return _outline_of(_line_frame_fits(x, y, bounds, widths, pts_by_sector), x, y, bounds, widths, mtype)
 
 
-def _outline_of(fits: dict[str, dict[int, tuple]], x: float, y: float, bounds: np.ndarray, widths: np.ndarray,
-                mtype: str) -> np.ndarray | None:
-    """:func:`line_frame_outline` from :func:`_line_frame_fits`' result."""
+def half_line_extents(fits: dict[str, dict[int, tuple]], mtype: str) -> np.ndarray:
+    """(4,) pixels: the distance from the centre to the outline of type ``mtype`` along each checker
+    half-line j, from :func:`_line_frame_fits`' result (each half-line bounds two sectors: the
+    estimates of the sectors seen are averaged); NaN where neither sector gives one."""
     est: dict[int, list] = {j: [] for j in range(4)}
     for k, (_, ea, eb) in fits[mtype].items():
         est[k].append(ea)
         est[(k + 1) % 4].append(eb)
-    ext = np.array([np.mean(v) if v else np.nan for v in est.values()])
+    return np.array([np.mean(v) if v else np.nan for v in est.values()])
+
+
+def _outline_of(fits: dict[str, dict[int, tuple]], x: float, y: float, bounds: np.ndarray, widths: np.ndarray,
+                mtype: str) -> np.ndarray | None:
+    """:func:`line_frame_outline` from :func:`_line_frame_fits`' result."""
+    ext = half_line_extents(fits, mtype)
     if not np.all(np.isfinite(ext) & (ext > 0)):
         return None
     unit = {"square": [(1.0, 0.0), (1.0, 1.0)], "diagonal": [(1.0, 0.0)],
@@ -1669,6 +1713,7 @@ class _Verifier:
         # outlines only); a candidate the score drops is never reported: the outline's type will do
         frame_type = fit.get("type") or mtype
         reported = frame_type
+        probs: dict = {}
         if score >= self.type_min_score:
             other = None
             if self.s.type_trees:
@@ -1682,9 +1727,10 @@ class _Verifier:
                     got = polarity_fit(pol_dark, b, frac, blended)
                     other = got if isinstance(got, dict) else None
             reported = _type_of(x, y, core["bounds"], core["widths"], type_fit["pts_by_sector"], radius, feats,
-                                frame_type, self.s.type_trees, other)
+                                frame_type, self.s.type_trees, other, probs)
         dark_share = float(core["widths"][core["dark"]].sum() / TWO_PI)
-        return _Verified(x, y, reported, radius, score, outline, (D, B), dark_share)
+        return _Verified(x, y, reported, radius, score, outline, (D, B), dark_share,
+                         type_probs=probs or None, bounds=core["bounds"], widths=core["widths"])
 
     def _size_ok(self, radius: float) -> bool:
         """Whether an outline's equal-area radius (pixels) is a marker's, with a margin for the fit."""
@@ -2403,6 +2449,8 @@ class _Scan:
                     continue
                 v = replace(v, x=ref.x, y=ref.y, outline=v.outline + [ref.x - v.x, ref.y - v.y])
                 sigma = ref.sigma_px
+                if paint_search is None and s.type_template_max_radius_px is not None:
+                    v = _template_checked(gray, v, s)
             else:
                 sigma = max(0.5 * scale, 0.5)
                 v.score *= 0.7
@@ -2508,6 +2556,26 @@ def _centre_grey_refused(gray: np.ndarray, x: float, y: float, v: "_Verified", s
         return False
     sharp = edge_blur_px(gray, x, y, v.radius) < s.centre_offset_max_blur_px
     return sharp_out if sharp else bright_out
+
+
+def _template_checked(gray: np.ndarray, v: "_Verified", s: ClassicalSettings) -> "_Verified":
+    """``v`` with its type weighed again by the template fit (:mod:`cpdetect.type_template`) where it
+    is small (radius at most ``type_template_max_radius_px``) and the type trees are unsure (their
+    second type at ``type_template_gate`` or more): the type of the largest log probability less
+    ``type_template_weight`` x 100 x the relative excess of its residual over the best type's."""
+    from .type_template import TYPES, combined_type, half_line_lengths, template_residuals
+
+    p = v.type_probs
+    if p is None or v.bounds is None or v.radius > s.type_template_max_radius_px:
+        return v
+    if sorted(p.values())[-2] < s.type_template_gate:
+        return v
+    lengths = half_line_lengths(gray, v.x, v.y, v.bounds, v.radius)
+    res = template_residuals(gray, v.x, v.y, v.bounds, v.widths, lengths, edge_blur_px(gray, v.x, v.y, v.radius),
+                             v.radius)
+    if not all(t in res for t in TYPES):
+        return v
+    return replace(v, type=combined_type(p, res, s.type_template_weight))
 
 
 def _fits_apart(a, b, max_apart_px: float | None) -> bool:

@@ -149,4 +149,14 @@ def predict_type(features: dict) -> str:
     return str(model.predict(np.array([features[k] for k in model.features], float)))
 
 
-__all__ = ["OTHER_FEATURES", "TYPE_FEATURES", "TYPES", "type_features", "type_model", "predict_type"]
+def type_probabilities(features: dict) -> dict[str, float]:
+    """The trees' probability of each type (the softmax of their raw scores, whose largest is
+    :func:`predict_type`'s) for :func:`type_features`' result."""
+    model = type_model()
+    sc = np.asarray(model.scores(np.array([features[k] for k in model.features], float)), float).ravel()
+    p = np.exp(sc - sc.max())
+    return dict(zip(model.classes, (p / p.sum()).tolist()))
+
+
+__all__ = ["OTHER_FEATURES", "TYPE_FEATURES", "TYPES", "type_features", "type_model", "predict_type",
+           "type_probabilities"]
