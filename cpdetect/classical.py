@@ -937,21 +937,14 @@ def line_frame_outline(x: float, y: float, bounds: np.ndarray, widths: np.ndarra
     return _outline_of(_line_frame_fits(x, y, bounds, widths, pts_by_sector), x, y, bounds, widths, mtype)
 
 
-def half_line_extents(fits: dict[str, dict[int, tuple]], mtype: str) -> np.ndarray:
-    """(4,) pixels: the distance from the centre to the outline of type ``mtype`` along each checker
-    half-line j, from :func:`_line_frame_fits`' result (each half-line bounds two sectors: the
-    estimates of the sectors seen are averaged); NaN where neither sector gives one."""
+def _outline_of(fits: dict[str, dict[int, tuple]], x: float, y: float, bounds: np.ndarray, widths: np.ndarray,
+                mtype: str) -> np.ndarray | None:
+    """:func:`line_frame_outline` from :func:`_line_frame_fits`' result."""
     est: dict[int, list] = {j: [] for j in range(4)}
     for k, (_, ea, eb) in fits[mtype].items():
         est[k].append(ea)
         est[(k + 1) % 4].append(eb)
-    return np.array([np.mean(v) if v else np.nan for v in est.values()])
-
-
-def _outline_of(fits: dict[str, dict[int, tuple]], x: float, y: float, bounds: np.ndarray, widths: np.ndarray,
-                mtype: str) -> np.ndarray | None:
-    """:func:`line_frame_outline` from :func:`_line_frame_fits`' result."""
-    ext = half_line_extents(fits, mtype)
+    ext = np.array([np.mean(v) if v else np.nan for v in est.values()])
     if not np.all(np.isfinite(ext) & (ext > 0)):
         return None
     unit = {"square": [(1.0, 0.0), (1.0, 1.0)], "diagonal": [(1.0, 0.0)],

@@ -143,20 +143,13 @@ def type_model():
     return model
 
 
-def predict_type(features: dict) -> str:
-    """The type the trees give for :func:`type_features`' result."""
-    model = type_model()
-    return str(model.predict(np.array([features[k] for k in model.features], float)))
-
-
 def type_probabilities(features: dict) -> dict[str, float]:
-    """The trees' probability of each type (the softmax of their raw scores, whose largest is
-    :func:`predict_type`'s) for :func:`type_features`' result."""
+    """The trees' probability of each type (the softmax of their raw scores; the type reported is
+    the most probable, as the trees' own prediction) for :func:`type_features`' result."""
     model = type_model()
     sc = np.asarray(model.scores(np.array([features[k] for k in model.features], float)), float).ravel()
     p = np.exp(sc - sc.max())
     return dict(zip(model.classes, (p / p.sum()).tolist()))
 
 
-__all__ = ["OTHER_FEATURES", "TYPE_FEATURES", "TYPES", "type_features", "type_model", "predict_type",
-           "type_probabilities"]
+__all__ = ["OTHER_FEATURES", "TYPE_FEATURES", "TYPES", "type_features", "type_model", "type_probabilities"]
