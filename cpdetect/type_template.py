@@ -30,7 +30,8 @@ import math
 
 import numpy as np
 
-TYPES = ("circle", "diagonal", "square")
+from .marker_type import TYPES
+
 SUBSAMPLES = 4  # per pixel and axis
 # of the half-line lengths, tried coarse to fine (every other one, then the two beside the best)
 SCALES = tuple(float(v) for v in np.round(np.arange(0.8, 1.31, 0.05), 2))
@@ -154,8 +155,9 @@ def half_line_lengths(gray: np.ndarray, x: float, y: float, bounds: np.ndarray, 
     """(4,) pixels: how far each checker half-line at angle ``bounds[j]`` (radians, image frame) runs
     from (x, y) before the sector edge along it ends, the same for every type (each type's outline
     crosses its half-lines at its extents). Read as the first distance past 0.5 ``radius`` where the
-    grey step across the half-line (samples DELTA px either side) falls under half its value near
-    the centre; NaN where the step is too weak to read."""
+    grey step across the half-line (samples 0.12 ``radius``, at least 1 px, either side) falls under
+    half its value near the centre; a half-line whose step is too weak to read takes its opposite's
+    length, else the others' median (NaN where none can be read)."""
     import cv2
 
     d = np.arange(0.3 * radius, 2.2 * radius, 0.25)
