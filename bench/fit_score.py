@@ -110,7 +110,8 @@ def _verified_rows_of(folder: str) -> list[dict]:
                              typein=typein[0]))
         return r
 
-    def types_spy(x, y, bounds, widths, pts_by_sector, radius, feats, fallback, trees, other=None):
+    def types_spy(x, y, bounds, widths, pts_by_sector, radius, feats, fallback, trees, other=None,
+                  probabilities=None):
         # ``other``: the other polarity's fit, kept as the type trees read it (marker_type.type_features)
         typein[0] = dict(x=x, y=y, bounds=np.array(bounds), widths=np.array(widths),
                          pts_by_sector={k: np.array(v) for k, v in pts_by_sector.items()},
@@ -118,7 +119,8 @@ def _verified_rows_of(folder: str) -> list[dict]:
                              pts_by_sector={k: np.array(v) for k, v in other["pts_by_sector"].items()},
                              radius=float(other["radius"]), e_rel=float(other["e_rel"])))
         # the rows' type is the residual rule's, whatever type trees are shipped (or none yet)
-        return orig_types(x, y, bounds, widths, pts_by_sector, radius, feats, fallback, False)
+        return orig_types(x, y, bounds, widths, pts_by_sector, radius, feats, fallback, False,
+                          probabilities=probabilities)
 
     # the score must not decide which candidates are verified: with every score 1 and no bar for
     # outlines from the checker lines, the rows are the same whatever score is shipped
