@@ -11,7 +11,8 @@ the accuracy on those folders, each against the residual rule (``type_trees=Fals
     # the shipped data/type_trees.json (2026-12-01, with the other polarity's features): the same
     # 6,900 images, 13,406 candidates on markers; train606 was passed as its two halves train606a /
     # train606b (markers.json of images 0-2999 and 3000-5999, images/ and masks/ linked) so that
-    # two processes make the rows; the datasets and the row cache are bench/fit_score.py's
+    # two processes make the rows (since stop 82 ``--workers 2`` does that on the folders as they
+    # are); the datasets and the row cache are bench/fit_score.py's
     .venv/bin/python bench/fit_type.py --data train606a --data train606b --data fit11 --data sc707 \
         --check dev505 --check dev808 --check dev909 --cache rows
     # 5-fold 0.9808 (the features before: 0.9773 on the same rows); check 0.9845 (0.9794)
@@ -66,7 +67,7 @@ def main(argv=None) -> int:
     from cpdetect.marker_type import TYPE_FEATURES
     from cpdetect.tree_ensemble import class_ensembles_from_dict, export_class_ensembles
 
-    X, y, rule, img = type_table(verified_rows(args.data, args.cache))
+    X, y, rule, img = type_table(verified_rows(args.data, args.cache, args.workers))
     if len(set(y)) < 3:
         print("the rows do not hold all three types", file=sys.stderr)
         return 1
@@ -86,7 +87,7 @@ def main(argv=None) -> int:
         print("export does not reproduce the classifier", file=sys.stderr)
         return 1
     if args.check:
-        Xc, yc, rc, _ = type_table(verified_rows(args.check, args.cache))
+        Xc, yc, rc, _ = type_table(verified_rows(args.check, args.cache, args.workers))
         print(f"check {', '.join(args.check)}: {len(yc)} candidates on markers, accuracy "
               f"{np.mean(model.predict(Xc) == yc):.4f} (residual rule {np.mean(rc == yc):.4f})")
     write_json_atomic(args.out, doc, indent=None)
