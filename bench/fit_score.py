@@ -59,7 +59,7 @@ candidates (13,408 on markers). In 5-fold cross-validation by image on a fresh t
 (seed 50300, 1,500 images) it kept +18 / +20 / +19 of 2,895 markers at equal false candidates; on
 dev505 / dev808 / dev909 at the cut 0.65: shipped 1,485 / 19, refitted without it 1,482 / 20, with it
 1,491 / 22 (with ``early_stopping=False``; scikit-learn's automatic early stopping, on over 10,000
-rows, made such a refit depend on ``random_state`` by 2-6 markers, so the SETTINGS above reproduce
+rows, made such a refit depend on ``random_state`` by 2-6 markers, so SETTINGS (below) reproduce
 the shipped file only with it left on). In the detector, fresh test-split 640 x 480 50400 / 50500 /
 50600 and 1920 x 1080 50700: 4,556 -> 4,561 of 4,953 markers found (+0.1 %, the rule asked +0.3 %),
 false markers 27 -> 22; on 45 MP 50800 1 -> 4 false (soft blobs of 53-180 px radius scored 0.70-0.77:
