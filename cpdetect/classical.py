@@ -164,6 +164,10 @@ TAG_FIELD = "dark field all around (a tag's bit cells)"  # the outer-ring test's
 # candidate it stops says the first it fails
 PREFILTER_REASONS = ("rings leave the image", "not four sectors", "weak four-sector pattern", "sector edges turn",
                      "contrast too low", "opposite sectors differ", "sectors not uniform", "candidate score")
+# the marker score's trees (package data, see SCORE_FEATURES and PATCH_FEATURES): the shipped ones,
+# and those before stop 83 (over SCORE_FEATURES alone), which hma's classical pass keeps
+SCORE_FILE = "marker_score.json"
+BASE_SCORE_FILE = "marker_score_base.json"
 
 
 def candidate_score(feats: dict) -> np.ndarray:
@@ -208,6 +212,9 @@ class ClassicalSettings:
         cost 2.5-6x the time on textured 2-3 MP images; 3,000 found +0 on four fresh sets (rule 35),
         so the cap stays 1,000.
     min_score: detections below this score (P(marker), :func:`marker_score`) are dropped.
+    score_trees: the package data file of the score's trees: "marker_score.json" (over SCORE_FEATURES
+        and PATCH_FEATURES) or "marker_score_base.json" (the trees before stop 83, over
+        SCORE_FEATURES alone; hma's classical pass keeps them).
     min_candidate_score: X-corner candidates whose prefilter score (:func:`candidate_score`) is below
         this are not verified (0 verifies every candidate that passes the fixed prefilter tests).
     refine_method: "auto", "symmetry", "saddle", "hough" or "model" (see cpdetect.refine).
@@ -474,6 +481,7 @@ class ClassicalSettings:
     min_search_radius_px: float | None = 4.0
     max_candidates_per_level: int = 1000
     min_score: float = 0.65
+    score_trees: str = SCORE_FILE
     min_candidate_score: float = CANDIDATE_SCORE_CUT
     refine_method: str = "auto"
     colour_pass: bool = True
@@ -529,6 +537,8 @@ class ClassicalSettings:
             raise ValueError(f"unknown refine_method {self.refine_method!r}")
         if not 0.0 <= self.min_score <= 1.0:
             raise ValueError("min_score must be in [0, 1] (a probability)")
+        if self.score_trees not in (SCORE_FILE, BASE_SCORE_FILE):
+            raise ValueError(f"score_trees must be {SCORE_FILE!r} or {BASE_SCORE_FILE!r}, got {self.score_trees!r}")
         if not 0.0 <= self.min_candidate_score < 1.0:
             raise ValueError("min_candidate_score must be in [0, 1)")
         if self.colour_min_candidate_score is not None and not 0.0 <= self.colour_min_candidate_score < 1.0:
@@ -1056,7 +1066,30 @@ SCORE_FEATURES = ("q", "agree", "logC", "spread", "e_rel", "frac", "widths_min",
 # on the dev sets dev505 / dev808 / dev909 (800 images, not fitted on) found 393 / 581 / 547 markers with
 # 4 / 4 / 6 false ones before, 394 / 583 / 549 with 4 / 1 / 6 after, at the cut of 0.65 (0.5: 395 /
 # 584 / 552 with 5 / 2 / 8): as many markers found or more, and fewer false ones.
-SCORE_FILE = "marker_score.json"
+# the marker area itself, as score features beside SCORE_FEATURES: the grey level on PATCH_RINGS
+# rings (fractions of the outline's equal-area radius) at PATCH_ANGLES angles, as (level - dark) /
+# contrast, each the mean of three neighbouring rays of the verifier's 72; the angles start at the
+# first checker half-line (the smallest of the four sector bounds in [0, 2 pi), image frame) and
+# move on by one sector where that first sector is the bright one, so a dark sector always comes
+# first. It shows what the measures above summarise (the outline's shape, a margin, the background,
+# an occluder, blur) as it is. Train-split cross-validation (stop 83: seeds 50300, 51400, 51500,
+# 2,700 images, 30,781 verified candidates, 5 folds by image): at equal false candidates (71) trees
+# on SCORE_FEATURES kept 4,973 of the 5,285 markers, with the patch 5,069; at the cut 0.65 4,972 / 71
+# false against 4,995 / 39. Refitted on the shipped trees' 6,900 images (bench/fit_score.py), the
+# dev sets dev505 / dev808 / dev909 at 0.65: 1,485 markers / 19 false candidates -> 1,503 / 13. In
+# the detector, fresh test-split sets: rule 50 (at least +0.3 % markers) failed on 51600-52000 with
+# +0.15 % (4,787 -> 4,794 of 5,189) and false markers 35 -> 25; rule 51, written then for the
+# false markers before its sets existed, passed on 640 x 480 52100 / 52200, 1920 x 1080 52300 /
+# 52400 and 45 MP 52500: false markers 3 / 3 / 13 / 9 / 1 -> 6 / 2 / 8 / 6 / 0 (29 -> 22), markers
+# found 4,824 -> 4,832, type pooled 0.9847 -> 0.9853, centres within 0.001 px (52400 0.047 -> 0.035),
+# time per image the same (+0.1 %). The default since stop 83.
+PATCH_RINGS = (0.15, 0.3, 0.45, 0.6, 0.75, 0.9, 1.05, 1.2, 1.4, 1.6, 1.85, 2.2)
+PATCH_ANGLES = 24
+PATCH_FEATURES = tuple(f"patch_{i}_{j}" for i in range(len(PATCH_RINGS)) for j in range(PATCH_ANGLES))
+# the feature lists a marker-score file may have: the shipped trees (marker_score.json) read the patch
+# too; the trees before it (marker_score_base.json, which hma's classical pass keeps) and hma's own
+# (marker_score_hma.json) SCORE_FEATURES alone
+SCORE_MODEL_FEATURES = (SCORE_FEATURES, SCORE_FEATURES + PATCH_FEATURES)
 # the early score: P(the full verification scores at least EARLY_TARGET_SCORE) from what the core and
 # the sectors' rough boundaries show (EARLY_FEATURES), gradient-boosted trees fitted on train-split
 # images only (bench/fit_early_score.py); a candidate under ``early_score_cut`` skips the outline
@@ -1069,21 +1102,24 @@ EARLY_TARGET_SCORE = 0.2
 EARLY_REASON = "early score"
 
 
-def _packaged_trees(name: str, features: tuple[str, ...]):
-    """The tree ensemble of package data file ``name``; ValueError unless its features are ``features``."""
+def _packaged_trees(name: str, features: tuple[str, ...] | tuple[tuple[str, ...], ...]):
+    """The tree ensemble of package data file ``name``; ValueError unless its features are ``features``
+    (or one of several such lists)."""
     from .package_data import data_path
     from .tree_ensemble import load_tree_ensemble
 
     ens = load_tree_ensemble(data_path(name))
-    if ens.features != features:
-        raise ValueError(f"{name}: features {ens.features} differ from the detector's {features}")
+    allowed = features if features and isinstance(features[0], tuple) else (features,)
+    if ens.features not in allowed:
+        raise ValueError(f"{name}: features {ens.features} differ from the detector's {allowed[-1]}")
     return ens
 
 
 @lru_cache(maxsize=4)
 def score_model(name: str = SCORE_FILE):
-    """The marker score's tree ensemble, package data file ``name`` (read once)."""
-    return _packaged_trees(name, SCORE_FEATURES)
+    """The marker score's tree ensemble, package data file ``name`` (read once): over SCORE_FEATURES,
+    or SCORE_FEATURES and PATCH_FEATURES (SCORE_MODEL_FEATURES)."""
+    return _packaged_trees(name, SCORE_MODEL_FEATURES)
 
 
 def _checker_contrast(levels: np.ndarray) -> np.ndarray:
@@ -1153,8 +1189,10 @@ def early_score(feats: dict, name: str = EARLY_FILE) -> float:
 
 
 def marker_score(feats: dict, name: str = SCORE_FILE) -> float:
-    """P(marker) in [0, 1] from the verification features (tree ensemble ``name``, see :func:`score_model`)."""
-    return float(score_model(name).probability(np.array([feats[k] for k in SCORE_FEATURES], float)))
+    """P(marker) in [0, 1] from the verification features (tree ensemble ``name``, see :func:`score_model`,
+    which says the features it reads)."""
+    model = score_model(name)
+    return float(model.probability(np.array([feats[k] for k in model.features], float)))
 
 
 class _Verifier:
@@ -1169,9 +1207,9 @@ class _Verifier:
     TAG_FAR_BRIGHT = 0.15
 
     def __init__(self, levels: _Levels, settings: ClassicalSettings, image_size: tuple[int, int],
-                 score_file: str = SCORE_FILE):
+                 score_file: str | None = None):
         self.levels = levels
-        self.score_file = score_file
+        self.score_file = score_file or settings.score_trees
         self.s = settings
         self.w, self.h = image_size
         self.max_radius = settings.max_radius_frac * min(self.w, self.h)
@@ -1199,6 +1237,32 @@ class _Verifier:
     def last_early(self) -> dict | None:
         """EARLY_FEATURES of the last verification that reached the early score, or None."""
         return None if self.early_inputs is None else _early_features(*self.early_inputs)
+
+    def patch_features(self, x: float, y: float, radius: float, bounds: np.ndarray, widths: np.ndarray,
+                       D: float, B: float) -> dict[str, float]:
+        """PATCH_FEATURES around (x, y) (full-res pixels) of a marker of outline radius ``radius``
+        whose sectors start at ``bounds`` (radians, sorted) with ``widths``, levels D (dark) and B;
+        NaN where the rings leave the image."""
+        th = bounds[0] + self.theta
+        radii = np.array(PATCH_RINGS) * radius
+        xs = x + radii[:, None] * np.cos(th)[None, :]
+        ys = y + radii[:, None] * np.sin(th)[None, :]
+        P = self.levels.sample(xs, ys, np.maximum(radii * (TWO_PI / self.N_THETA), 1.0)[:, None]).astype(float)
+        P = ((P - D) / max(B - D, 1.0)).reshape(len(PATCH_RINGS), PATCH_ANGLES, -1)
+        n0 = int(round(float(widths[0]) / TWO_PI * PATCH_ANGLES))  # the first sector's bins
+        if _nanfree(P):
+            P = P.mean(2)
+            first = P[1:5, :max(n0, 1)].mean()
+        else:
+            import warnings
+
+            with warnings.catch_warnings():  # all-NaN bins (rings beyond the image) stay NaN
+                warnings.simplefilter("ignore", RuntimeWarning)
+                P = np.nanmean(P, 2)
+                first = np.nanmean(P[1:5, :max(n0, 1)])
+        if first > 0.5:  # the first sector is the bright one
+            P = np.roll(P, -n0, axis=1)
+        return dict(zip(PATCH_FEATURES, P.ravel().tolist()))
 
     def polar(self, x: float, y: float, radii: np.ndarray, spacing: np.ndarray) -> np.ndarray:
         """(n_radii, N_THETA) samples on rings around (x, y) (full-res pixels)."""
@@ -1694,6 +1758,7 @@ class _Verifier:
                      widths_min=float(core["widths"].min() / (0.5 * np.pi)), mid_share=core["mid_share"],
                      core_ratio=float(min(core["radii"][core["core_end"]] / radius, 3.0)), log_r=math.log(radius),
                      opp=core["opp"], hull_fallback=hull_fallback, **outer)
+        feats.update(self.patch_features(x, y, radius, core["bounds"], core["widths"], D, B))
         self.last_features = feats
         score = marker_score(feats, self.score_file)
         if fit.get("line_frame") and score < LINE_FRAME_MIN_SCORE:

@@ -1141,11 +1141,13 @@ class HMADetector:
         """The classical detector's result on ``image`` (array or path): seeds for the blobs, markers
         to add (``with_map``: with its probability map) or vetoes (``trace``: a list that receives
         where its scan left each candidate)."""
-        from cpdetect.classical import ClassicalDetector
+        from cpdetect.classical import BASE_SCORE_FILE, ClassicalDetector
 
-        # the search reduction of before stop 80 (``min_search_radius_px`` None): hma's settings were
-        # chosen with the seeds and vetoes of that search (the finer one was not tried with hma)
-        return ClassicalDetector(probability_map=with_map, min_search_radius_px=None).detect(image, trace=trace)
+        # the search reduction of before stop 80 (``min_search_radius_px`` None) and the score trees
+        # of before stop 83 (over SCORE_FEATURES alone): hma's settings were chosen with the seeds and
+        # vetoes of those (the finer search and the patch features were not tried with hma)
+        return ClassicalDetector(probability_map=with_map, min_search_radius_px=None,
+                                 score_trees=BASE_SCORE_FILE).detect(image, trace=trace)
 
     def _refined_centre(self, gray, labels, f, k, bbox, radius, centroid, loose: bool = False,
                         extra: list[tuple[float, float]] = ()) -> "_Centre | None":
