@@ -45,7 +45,9 @@ def test_installed_package_has_its_data_and_runs_from_elsewhere(installed):
             "assert 'site-packages' in str(r.files('cpdetect.data')); assert score_model().feature.shape[0] >= 10; "
             "from cpdetect.marker_type import type_model; from learned.adapter import MODEL_SCORE_FILE; "
             "assert type_model().classes == ('circle', 'diagonal', 'square'); "
-            "assert score_model(MODEL_SCORE_FILE).features == score_model().features; "
+            "from cpdetect.classical import BASE_SCORE_FILE, SCORE_FEATURES, PATCH_FEATURES; "
+            "assert score_model(MODEL_SCORE_FILE).features == score_model(BASE_SCORE_FILE).features == SCORE_FEATURES; "
+            "assert score_model().features == SCORE_FEATURES + PATCH_FEATURES; "
             "from cpdetect.classical import EARLY_FEATURES, early_model; "
             "assert early_model().features == EARLY_FEATURES; "
             "print(n)")

@@ -129,7 +129,9 @@ def test_the_detector_drops_a_tag_bit_corner_by_its_grid(tmp_path):
     # twelve surrounding cells are bits, 8 dark and 4 bright, every one uniform
     from photo_helpers import write_generated_jpeg
 
-    from cpdetect.classical import ClassicalDetector
+    from cpdetect.classical import BASE_SCORE_FILE, ClassicalDetector
+    # the tests' parts, with the score trees under which they were chosen (before stop 83); the
+    # defaults' result last
 
     path = tmp_path / "tag.jpg"
     markers = write_generated_jpeg(path, 22, 39900, width=8192, height=5460, radius_min_px=32, split="test")
@@ -143,17 +145,17 @@ def test_the_detector_drops_a_tag_bit_corner_by_its_grid(tmp_path):
 
     trace: list = []
     # the lattice test (stop 77) takes it for a tag's bits too: off here, to see the grid test's part
-    at, true = split(ClassicalDetector(tag_grid_min_each=None, tag_lattice=False).detect(path).detections)
+    at, true = split(ClassicalDetector(score_trees=BASE_SCORE_FILE, tag_grid_min_each=None, tag_lattice=False).detect(path).detections)
     assert len(at) == 1 and at[0].type == "square" and len(true) == len(truth)
-    at, true = split(ClassicalDetector(tag_grid_min_each=3, tag_lattice=False).detect(path, trace=trace).detections)
+    at, true = split(ClassicalDetector(score_trees=BASE_SCORE_FILE, tag_grid_min_each=3, tag_lattice=False).detect(path, trace=trace).detections)
     assert at == [] and len(true) == len(truth)
     assert split(ClassicalDetector().detect(path).detections)[0] == []  # the defaults: 3, and the lattice
     assert any(t["stage"] == "tag grid" and math.hypot(t["x"] - corner[0], t["y"] - corner[1]) < 20 for t in trace)
     # at 5 of each (8 dark, 4 bright) it stays
-    at, _ = split(ClassicalDetector(tag_grid_min_each=5, tag_lattice=False).detect(path).detections)
+    at, _ = split(ClassicalDetector(score_trees=BASE_SCORE_FILE, tag_grid_min_each=5, tag_lattice=False).detect(path).detections)
     assert len(at) == 1
     trace = []
-    at, true = split(ClassicalDetector(tag_grid_min_each=None).detect(path, trace=trace).detections)
+    at, true = split(ClassicalDetector(score_trees=BASE_SCORE_FILE, tag_grid_min_each=None).detect(path, trace=trace).detections)
     assert at == [] and len(true) == len(truth)
     assert any(t["stage"] == "tag lattice" and math.hypot(t["x"] - corner[0], t["y"] - corner[1]) < 20 for t in trace)
 
@@ -276,7 +278,9 @@ def test_the_detector_drops_a_tag_bit_corner_on_its_lattice(tmp_path):
     # bright bits, every boundary on the lattice's lines
     from photo_helpers import write_generated_jpeg
 
-    from cpdetect.classical import ClassicalDetector
+    from cpdetect.classical import BASE_SCORE_FILE, ClassicalDetector
+    # the tests' parts, with the score trees under which they were chosen (before stop 83); the
+    # defaults' result last
 
     path = tmp_path / "tag.jpg"
     markers = write_generated_jpeg(path, 53, 44300, width=1920, height=1080, split="test")
@@ -288,10 +292,10 @@ def test_the_detector_drops_a_tag_bit_corner_on_its_lattice(tmp_path):
         true = [d for d in dets if min(math.hypot(d.x - x, d.y - y) for x, y in truth) < 0.3]
         return at, true
 
-    at, true = split(ClassicalDetector(tag_lattice=False).detect(path).detections)
+    at, true = split(ClassicalDetector(score_trees=BASE_SCORE_FILE, tag_lattice=False).detect(path).detections)
     assert len(at) == 1 and at[0].type == "square" and len(true) == len(truth) >= 1
     trace: list = []
-    at, true2 = split(ClassicalDetector(tag_lattice=True).detect(path, trace=trace).detections)
+    at, true2 = split(ClassicalDetector(score_trees=BASE_SCORE_FILE, tag_lattice=True).detect(path, trace=trace).detections)
     assert at == [] and [(d.x, d.y) for d in true2] == [(d.x, d.y) for d in true]
     assert any(t["stage"] == "tag lattice" and math.hypot(t["x"] - corner[0], t["y"] - corner[1]) < 20 for t in trace)
     assert split(ClassicalDetector().detect(path).detections)[0] == []  # the default since rule 39

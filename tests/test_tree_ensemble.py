@@ -90,20 +90,39 @@ def test_malformed_files_are_named(tmp_path, change, message):
     assert str(path) in str(e.value)
 
 
+def _ideal_patch(inside: float = 0.9, background: float = 0.45) -> dict:
+    """PATCH_FEATURES of a frontal marker: dark (0) then bright (1) quarter turns up to ``inside`` of
+    the outline radius, the background level (over the marker's contrast) beyond it."""
+    from cpdetect.classical import PATCH_ANGLES, PATCH_FEATURES, PATCH_RINGS
+
+    quarter = PATCH_ANGLES // 4
+    values = [float((j // quarter) % 2) if f <= inside else background
+              for f in PATCH_RINGS for j in range(PATCH_ANGLES)]
+    return dict(zip(PATCH_FEATURES, values))
+
+
 def test_shipped_marker_score_matches_the_detector_features():
-    from cpdetect.classical import SCORE_FEATURES, marker_score, score_model
+    from cpdetect.classical import PATCH_FEATURES, SCORE_FEATURES, marker_score, score_model
 
     ens = score_model()
-    assert ens.features == SCORE_FEATURES
+    assert ens.features == SCORE_FEATURES + PATCH_FEATURES
     assert ens.info["fitted_on"] and ens.info["script"] == "bench/fit_score.py"
     # typical features of a clean marker and of a texture saddle that passed the core test
     marker = dict(q=0.93, agree=0.97, logC=4.6, spread=0.08, e_rel=0.01, frac=0.98, widths_min=0.95,
                   mid_share=0.15, core_ratio=0.7, log_r=3.0, opp=0.05, inverted=0.0, alternations=0.0,
-                  outer_mixed=0.1, hull_fallback=0.0, fill=0.97, alt_far=0.2, dark_surround=0.0)
+                  outer_mixed=0.1, hull_fallback=0.0, fill=0.97, alt_far=0.2, dark_surround=0.0, **_ideal_patch())
+    # its marker area: the four-sector pattern fades into texture a third of the way out
+    rng = np.random.default_rng(3)
+    texture = {k: (v if i < 2 * 24 else float(rng.uniform(0.0, 1.0))) for i, (k, v) in enumerate(_ideal_patch().items())}
     saddle = dict(marker, agree=0.72, spread=0.3, e_rel=0.06, frac=0.78, widths_min=0.6, mid_share=0.4,
                   opp=0.3, inverted=0.6, alternations=1.0, outer_mixed=0.5, fill=0.7, alt_far=0.9,
-                  dark_surround=0.6)
+                  dark_surround=0.6, **texture)
     assert marker_score(marker) > 0.9 and marker_score(saddle) < 0.1
+    # the trees read the marker area: the same summary features with it all mid-grey are far less
+    # likely a marker (in log-odds: both probabilities lie near 1)
+    flat = dict(marker, **dict.fromkeys(PATCH_FEATURES, 0.5))
+    odds = [float(ens.log_odds(np.array([f[k] for k in ens.features], float))) for f in (marker, flat)]
+    assert odds[1] < odds[0] - 2.0
 
 
 def _fitted_three_classes():
@@ -155,13 +174,17 @@ def test_malformed_class_ensembles_are_named(change, message):
 
 
 def test_shipped_score_files_serve_their_users():
-    """The classical detector's score and the one the hma models were fitted on: same features,
-    different trees (refitted on more images since), both loadable as package data."""
-    from cpdetect.classical import SCORE_FEATURES, score_model
+    """The classical detector's score (over the summary features and the marker area), the trees before
+    it (summary features alone, which hma's classical pass keeps) and the one the hma models were
+    fitted on: all loadable as package data, each with its own trees."""
+    from cpdetect.classical import BASE_SCORE_FILE, PATCH_FEATURES, SCORE_FEATURES, score_model
     from learned.adapter import MODEL_SCORE_FILE
 
-    own, pinned = score_model(), score_model(MODEL_SCORE_FILE)
-    assert own.features == pinned.features == SCORE_FEATURES
-    assert own.info["rows"] > pinned.info["rows"]
+    own, base, pinned = score_model(), score_model(BASE_SCORE_FILE), score_model(MODEL_SCORE_FILE)
+    assert own.features == SCORE_FEATURES + PATCH_FEATURES
+    assert base.features == pinned.features == SCORE_FEATURES
+    # the same 6,900 images: the detector of stop 83 verifies more candidates than that of 2026-11-26
+    assert own.info["rows"] > base.info["rows"] > pinned.info["rows"]
+    assert own.info["fitted_on"] == base.info["fitted_on"]
     x = np.array([0.9, 0.95, 4.2, 0.1, 0.02, 0.95, 0.9, 0.2, 0.8, 2.8, 0.08, 0.0, 0.0, 0.2, 0.0, 0.95, 0.3, 0.1])
-    assert own.probability(x) != pinned.probability(x)
+    assert base.probability(x) != pinned.probability(x)
