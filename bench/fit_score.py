@@ -162,6 +162,7 @@ def _rows_of_images(job: tuple[str, int, int, bool]) -> list[dict]:
         # rows of candidates that the tests the score weighs too let through, as the shipped trees
         # were fitted (see the module doc: the detector leaves those tests to the score)
         self.strict_tests = True
+        self.reads_patch = True  # every feature a refit may read, whatever trees are shipped
         r = orig(self, *a)
         if not isinstance(r, str):
             rows.append(dict(self.last_features, x=r.x, y=r.y, file=cur[0], type=r.type, radius=r.radius,

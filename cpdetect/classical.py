@@ -1102,14 +1102,13 @@ EARLY_TARGET_SCORE = 0.2
 EARLY_REASON = "early score"
 
 
-def _packaged_trees(name: str, features: tuple[str, ...] | tuple[tuple[str, ...], ...]):
-    """The tree ensemble of package data file ``name``; ValueError unless its features are ``features``
-    (or one of several such lists)."""
+def _packaged_trees(name: str, allowed: tuple[tuple[str, ...], ...]):
+    """The tree ensemble of package data file ``name``; ValueError unless its features are one of the
+    ``allowed`` lists."""
     from .package_data import data_path
     from .tree_ensemble import load_tree_ensemble
 
     ens = load_tree_ensemble(data_path(name))
-    allowed = features if features and isinstance(features[0], tuple) else (features,)
     if ens.features not in allowed:
         raise ValueError(f"{name}: features {ens.features} differ from the detector's {allowed[-1]}")
     return ens
@@ -1180,7 +1179,7 @@ def _opposite_mismatch_one(*lv: float) -> float:
 @lru_cache(maxsize=2)
 def early_model(name: str = EARLY_FILE):
     """The early score's tree ensemble, package data file ``name`` (read once)."""
-    return _packaged_trees(name, EARLY_FEATURES)
+    return _packaged_trees(name, (EARLY_FEATURES,))
 
 
 def early_score(feats: dict, name: str = EARLY_FILE) -> float:
@@ -1210,6 +1209,8 @@ class _Verifier:
                  score_file: str | None = None):
         self.levels = levels
         self.score_file = score_file or settings.score_trees
+        # the marker area is sampled only for trees that read it (bench/fit_score.py asks for it always)
+        self.reads_patch = PATCH_FEATURES[0] in score_model(self.score_file).features
         self.s = settings
         self.w, self.h = image_size
         self.max_radius = settings.max_radius_frac * min(self.w, self.h)
@@ -1758,7 +1759,8 @@ class _Verifier:
                      widths_min=float(core["widths"].min() / (0.5 * np.pi)), mid_share=core["mid_share"],
                      core_ratio=float(min(core["radii"][core["core_end"]] / radius, 3.0)), log_r=math.log(radius),
                      opp=core["opp"], hull_fallback=hull_fallback, **outer)
-        feats.update(self.patch_features(x, y, radius, core["bounds"], core["widths"], D, B))
+        if self.reads_patch:
+            feats.update(self.patch_features(x, y, radius, core["bounds"], core["widths"], D, B))
         self.last_features = feats
         score = marker_score(feats, self.score_file)
         if fit.get("line_frame") and score < LINE_FRAME_MIN_SCORE:
