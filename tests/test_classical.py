@@ -1151,6 +1151,26 @@ def test_a_held_marker_is_added_where_no_kept_one_stands_and_blocks_no_better_ca
     assert len(low) == 1 and low[0].score < 0.65
 
 
+@pytest.mark.parametrize("index, seed, x, y, mtype", [(77, 52800, 127.58, 30.20, "circle"),
+                                                      (555, 52700, 394.76, 124.81, "diagonal")])
+def test_held_markers_are_on_by_default(index, seed, x, y, mtype):
+    # train-split sets of stop 84's dev check: an uncovered circle of radius 19 px at 44 degrees of
+    # tilt that the score trees put at 0.57, and a diagonal of radius 57 px at 0.47, both with a
+    # sharp X-corner (sigma under 0.01 px): held and added since rule 52, missed with held_score None
+    img, markers = generated_photo(index, seed)
+    truth = [m for m in markers if math.hypot(m.x - x, m.y - y) < 0.5]
+    assert len(truth) == 1 and truth[0].type == mtype
+
+    def near(det):
+        return [d for d in det.detect(img).detections if math.hypot(d.x - x, d.y - y) < 3.0]
+
+    assert ClassicalDetector().settings.held_score == 0.2
+    found = near(ClassicalDetector())
+    assert len(found) == 1 and found[0].type == mtype and 0.2 <= found[0].score < 0.65
+    assert math.hypot(found[0].x - truth[0].x, found[0].y - truth[0].y) < 0.1 and found[0].sigma_px <= 0.03
+    assert near(ClassicalDetector(held_score=None)) == []
+
+
 def test_a_held_marker_typed_square_is_added_only_where_squares_are_let_in():
     # train-split set of seed 41200, image 51: a square marker of radius 20 px at 50 degrees of tilt,
     # blurred, scores 0.54 with a sharp centre; held squares were tag bit corners and checkerboard
