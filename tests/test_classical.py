@@ -1309,7 +1309,8 @@ def test_marker_without_margin_on_a_dark_wall_inside_a_bright_window_frame(det):
 
 def found_near(img, truth, monkeypatch=None):
     """The classical detections within 3 px of ``truth``; given ``monkeypatch``, with the tests that
-    the score weighs too rejecting outright (``strict_tests``, as before 2026-11-27)."""
+    the score weighs too rejecting outright (``strict_tests``, as before 2026-11-27) and no held
+    markers (off before stop 84: a weaker candidate of the marker, scored under the cut, is held)."""
     import cpdetect.classical as C
 
     if monkeypatch is not None:
@@ -1320,7 +1321,7 @@ def found_near(img, truth, monkeypatch=None):
             self.strict_tests = True
 
         monkeypatch.setattr(C._Verifier, "__init__", strict)
-    res = C.ClassicalDetector().detect(img)
+    res = C.ClassicalDetector(**({} if monkeypatch is None else {"held_score": None})).detect(img)
     return [m for m in res.detections if math.hypot(m.x - truth.x, m.y - truth.y) < 3.0]
 
 

@@ -35,7 +35,8 @@ def test_the_trace_changes_nothing_and_names_the_marker_kept():
 
 
 def test_a_marker_scored_under_the_cut_is_named_score():
-    res, _, got = _traced(min_score=1.0)
+    # held markers off: with the cut at 1 every candidate of 0.2 or more would be held and added
+    res, _, got = _traced(min_score=1.0, held_score=None)
     assert res.detections == []
     assert got["stage"] == "score" and 0.9 < got["best_score"] < 1.0
 
@@ -84,7 +85,7 @@ def test_a_run_on_an_evaluated_set(tmp_path):
     from cpdetect.synth_images import SynthImageOptions, write_synth_images
 
     write_synth_images(tmp_path / "set", 2, 7, SynthImageOptions(split="train"))
-    det = ClassicalDetector(min_score=1.0)  # everything verified scores under the cut
+    det = ClassicalDetector(min_score=1.0, held_score=None)  # everything verified scores under the cut, none held
     ev = evaluate(load_dataset(tmp_path / "set"), det)
     assert ev["tp"] == 0 and ev["markers"] > 0
     ev["settings"] = {"min_score": 1.0}
