@@ -279,10 +279,10 @@ class ClassicalSettings:
         at most 0.0008 lower), centres within 0.0001 px, time per image at 640 x 480 -1 %. A held
         candidate's neighbours in the single-saddle test are compared with its copy on their own
         levels (added after the rule for a small blurred checkerboard's corner; the same detections
-        on the rule's sets). hma's classical pass keeps it off. Off before, with the trees before: rule 36 (stop 76, written
-        before its test sets; 0.2 with ``held_max_sigma_px`` 0.03) asked for at most one more false marker and
-        got four for twelve more markers over fresh 640 x 480 43000-43200, 1920 x 1080 43500 and
-        45 MP 43400 (two pairs of touching dark blobs, a checkerboard corner, one at 45 MP), after
+        on the rule's sets). hma's classical pass keeps it off. Off before, with the trees before:
+        rule 36 (stop 76, written before its test sets; 0.2 with ``held_max_sigma_px`` 0.03) asked
+        for at most one more false marker and got four for twelve more markers over fresh 640 x 480
+        43000-43200, 1920 x 1080 43500 and 45 MP 43400 (two pairs of touching dark blobs, a checkerboard corner, one at 45 MP), after
         +13 markers and +0 false on the train-split dev sets dev41200 / dev43300 it was chosen on.
         Rule 37 (the same with ``held_squares`` False) failed too: +2 markers, +2 false (one at 45 MP)
         over fresh 640 x 480 44000-44200, 1920 x 1080 44300 and 45 MP 44400, where it asked for +4;

@@ -1313,7 +1313,9 @@ def found_near(img, truth, monkeypatch=None):
     markers (off before stop 84: a weaker candidate of the marker, scored under the cut, is held)."""
     import cpdetect.classical as C
 
+    settings = {}
     if monkeypatch is not None:
+        settings["held_score"] = None
         init = C._Verifier.__init__
 
         def strict(self, *a, **k):
@@ -1321,7 +1323,7 @@ def found_near(img, truth, monkeypatch=None):
             self.strict_tests = True
 
         monkeypatch.setattr(C._Verifier, "__init__", strict)
-    res = C.ClassicalDetector(**({} if monkeypatch is None else {"held_score": None})).detect(img)
+    res = C.ClassicalDetector(**settings).detect(img)
     return [m for m in res.detections if math.hypot(m.x - truth.x, m.y - truth.y) < 3.0]
 
 
