@@ -282,8 +282,9 @@ class ClassicalSettings:
         on the rule's sets). hma's classical pass keeps it off. Off before, with the trees before:
         rule 36 (stop 76, written before its test sets; 0.2 with ``held_max_sigma_px`` 0.03) asked
         for at most one more false marker and got four for twelve more markers over fresh 640 x 480
-        43000-43200, 1920 x 1080 43500 and 45 MP 43400 (two pairs of touching dark blobs, a checkerboard corner, one at 45 MP), after
-        +13 markers and +0 false on the train-split dev sets dev41200 / dev43300 it was chosen on.
+        43000-43200, 1920 x 1080 43500 and 45 MP 43400 (two pairs of touching dark blobs, a
+        checkerboard corner, one at 45 MP), after +13 markers and +0 false on the train-split dev
+        sets dev41200 / dev43300 it was chosen on.
         Rule 37 (the same with ``held_squares`` False) failed too: +2 markers, +2 false (one at 45 MP)
         over fresh 640 x 480 44000-44200, 1920 x 1080 44300 and 45 MP 44400, where it asked for +4;
         rule 42 (stop 79) +17 markers for +5 false over 46700-47100.
