@@ -42,8 +42,9 @@ TRUTH_FIELDS = ("radius_px", "type", "centre_hidden", "occluded_frac", "blur_px"
                 "texture")
 # furthest first: the order of the scan's tests (cpdetect.classical._Scan.run); "held" is a candidate
 # scored under the cut and held aside (``held_score``), added after every pass unless beside a kept marker
-ORDER = ("kept", "held", "edges run on", "tag lattice", "tag grid", "score after refinement", "centre grey",
-         "centre reach", "single saddle", "beside a found marker", "score", "verify", "unverified", "prefilter")
+ORDER = ("kept", "held", "edges run on", "tag lattice", "tag grid", "mixed-ray fit, centre unsure",
+         "score after refinement", "centre grey", "centre reach", "single saddle", "beside a found marker", "score",
+         "verify", "unverified", "prefilter")
 
 
 def near_radius(radius_px: float) -> float:

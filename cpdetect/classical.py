@@ -148,6 +148,10 @@ _CAND_B = -3.4394
 # 0.2 instead of 0.0178 (which kept 99.5 % of the candidates on markers) lost 6 markers (0.2 %) and
 # 15 of 71 false ones, and verified a quarter as many candidates (time per image -50 to -60 %)
 CANDIDATE_SCORE_CUT = 0.2
+# _fit_outline's reason where a fit without mixed rays (ClassicalSettings.mixed_ray_retry) has none to leave out
+NO_MIXED_RAYS = "no mixed rays"
+# the scan's stage for a marker whose outline only the fit without mixed rays found and whose centre is unsure
+MIXED_FIT_UNSURE = "mixed-ray fit, centre unsure"
 # the least score of a marker whose outline had to come from line_frame_outline (see _with_outline)
 LINE_FRAME_MIN_SCORE = 0.6
 # where the core rings start, as fractions of the radius, when a known centre is checked or a candidate
@@ -363,6 +367,18 @@ class ClassicalSettings:
         21 -> 15, true markers 1,561 -> 1,563, false 15 -> 16; fresh test-split seeds 10600 + 10700,
         typed wrong 18 -> 17, true 1,157 -> 1,159, false 8 -> 10 (14 of those 18 have an outline
         within 30 % of the true size: their type, not their outline, is wrong).
+    mixed_ray_retry: where no outline of a verified candidate fits at a marker's size (every
+        polarity's fit fails, or gives an outline outside the size range), fit them again without
+        the rays that never show their sector's grey level on the first fine ring: near a checker
+        edge of a small blurred marker the two levels mix from the centre out, the ray "departs"
+        at once, and its boundary lands at a quarter of the radius (:func:`mixed_end_rays`). Those
+        at a sector's ends are left out of the count of rays too, the others count as rays
+        without a boundary. Only such a second fit changes anything: a candidate whose outline
+        fits keeps it.
+    mixed_ray_max_sigma_px: a marker whose outline only that second fit found is kept only where
+        its refined centre's uncertainty (sigma_px) is at most this (the centre target's p95, 0.15
+        px): on the train-split dev sets 52600-52800 its false markers were small, with sigma
+        0.12-0.28 px, the true ones mostly 0.01-0.13.
     saddle_order: which near X-corners the single-saddle test tries first (at most eight):
         "strongest" (the contrast order) or "alike" (the contrast most like the candidate's first,
         :func:`saddle_neighbours`: a shadow across a checkerboard leaves its sunlit corners the
@@ -518,6 +534,8 @@ class ClassicalSettings:
     max_verified: int = 1000
     outline_r0_ratio: float | None = None
     robust_ellipse: bool = False
+    mixed_ray_retry: bool = False
+    mixed_ray_max_sigma_px: float = 0.15
     saddle_order: str = "alike"
     saddle_ring_min_px: float = 3.0
     saddle_distinct_frac: float | None = 0.1
@@ -555,6 +573,8 @@ class ClassicalSettings:
             raise ValueError("colour_min_candidate_score must be in [0, 1) or null (min_candidate_score)")
         if not self.colour_gain >= 1.0:
             raise ValueError("colour_gain must be >= 1")
+        if not self.mixed_ray_max_sigma_px > 0:
+            raise ValueError("mixed_ray_max_sigma_px must be positive")
         if not 0.0 <= self.colour_min_score <= 1.0:
             raise ValueError("colour_min_score must be in [0, 1]")
         if self.colour_fit_max_apart_px is not None and not self.colour_fit_max_apart_px > 0:
@@ -744,6 +764,7 @@ class _Verified:
     type_probs: dict | None = None
     bounds: np.ndarray | None = None
     widths: np.ndarray | None = None
+    mixed_fit: bool = False  # the outline came from the second fit, without mixed rays (mixed_ray_retry)
 
 
 def _label_first(why: np.ndarray, idx: np.ndarray, failed: tuple, labels: tuple) -> None:
@@ -1022,6 +1043,28 @@ def _ellipse_residuals(pts: np.ndarray) -> tuple[np.ndarray, Any]:
     v = (-s * dx + c * dy) / (b / 2)
     rho = np.hypot(u, v)
     return (rho - 1.0) * math.sqrt(a * b) / 2, ((cx, cy), (a, b), ang)
+
+
+def mixed_end_rays(mixed: np.ndarray, rays: np.ndarray, sec: np.ndarray, f: np.ndarray,
+                   sectors) -> np.ndarray:
+    """Of the rays (bool, N_THETA) that are ``mixed`` (they never show their sector's level), those
+    in an unbroken run from either end of their sector, in the order of ``f`` (the relative position
+    in the sector, 0 .. 1); a whole sector where all its rays are mixed. ``rays`` the rays looked at,
+    ``sec`` each ray's sector, ``sectors`` the sectors to look at. Blur mixes the two levels
+    along a checker edge, so there the rays carry nothing about the outline; a mixed ray inside a
+    sector has met something else (an occluder) and is not one of these."""
+    ends = np.zeros(len(rays), bool)
+    for k in sectors:
+        js = np.nonzero(rays & (sec == k))[0]
+        js = js[np.argsort(f[js])]
+        m = mixed[js]
+        if m.all():
+            ends[js] = True
+            continue
+        lead, trail = int(np.argmin(m)), int(np.argmin(m[::-1]))
+        ends[js[:lead]] = True
+        ends[js[len(js) - trail:]] = True
+    return ends
 
 
 def _outline_fits(e_model: float, r0: float) -> bool:
@@ -1717,30 +1760,40 @@ class _Verifier:
         if self.early_cut > 0.0 and early_score(self.last_early()) < self.early_cut:
             return EARLY_REASON
         rough.sort(key=lambda t: -t[0])
-        fits: list = []
-
-        def polarity_fit(pol_dark, b, frac, blended) -> dict | str:
+        def polarity_fit(pol_dark, b, frac, blended, skip_mixed) -> dict | str:
             if frac < 0.75:
                 return "marker boundary not found"
             r0 = float(np.sqrt(np.nanmean(b ** 2)))  # rough: rms boundary distance of one polarity
             if r0 < 0.6 * self.s.min_radius_px or r0 > 1.5 * self.max_radius:
                 return "size out of range"
-            return self._with_outline(self._fit_outline(x, y, core, sec, f, inner, pol_dark, r0, blended), x, y,
-                                      core, core_r)
+            return self._with_outline(self._fit_outline(x, y, core, sec, f, inner, pol_dark, r0, blended, skip_mixed),
+                                      x, y, core, core_r)
 
-        for strength, pol_dark, b, frac, blended in rough:
-            fits.append(polarity_fit(pol_dark, b, frac, blended))
-            if isinstance(fits[-1], dict) and fits[-1]["near"] and fits[-1]["radius"] <= 1.2 * core_r \
-                    and fits[-1]["e_rel"] < 0.03 and self._size_ok(fits[-1]["radius"]):
-                break  # the pattern's own outline, clearly: the other polarity can only be farther
-        else:
-            # neither polarity alone: each sector against its own level
-            bs = np.concatenate([t[2] for t in rough])
-            if np.isfinite(bs).mean() >= 0.5:
-                r0 = float(np.nanmedian(bs))
-                if 0.6 * self.s.min_radius_px <= r0 <= 1.5 * self.max_radius:
-                    fits.append(self._with_outline(self._fit_outline(x, y, core, sec, f, inner, None, r0), x, y,
-                                                   core, core_r))
+        def outline_fits(skip_mixed: bool) -> list:
+            fits: list = []
+            for strength, pol_dark, b, frac, blended in rough:
+                fits.append(polarity_fit(pol_dark, b, frac, blended, skip_mixed))
+                if isinstance(fits[-1], dict) and fits[-1]["near"] and fits[-1]["radius"] <= 1.2 * core_r \
+                        and fits[-1]["e_rel"] < 0.03 and self._size_ok(fits[-1]["radius"]):
+                    break  # the pattern's own outline, clearly: the other polarity can only be farther
+            else:
+                # neither polarity alone: each sector against its own level
+                bs = np.concatenate([t[2] for t in rough])
+                if np.isfinite(bs).mean() >= 0.5:
+                    r0 = float(np.nanmedian(bs))
+                    if 0.6 * self.s.min_radius_px <= r0 <= 1.5 * self.max_radius:
+                        fits.append(self._with_outline(self._fit_outline(x, y, core, sec, f, inner, None, r0, None,
+                                                                         skip_mixed), x, y, core, core_r))
+            return fits
+
+        def any_sized(fits: list) -> bool:
+            return any(isinstance(t, dict) and self._size_ok(t["radius"]) for t in fits)
+
+        fits, skip_mixed = outline_fits(False), False
+        if self.s.mixed_ray_retry and not any_sized(fits):
+            again = outline_fits(True)
+            if any_sized(again):
+                fits, skip_mixed = again, True
         good = [t for t in fits if isinstance(t, dict)]
         if not good:
             return fits[0]
@@ -1794,25 +1847,26 @@ class _Verifier:
                              None)
                 if other is None and len(fits) < len(rough):
                     _, pol_dark, b, frac, blended = rough[len(fits)]
-                    got = polarity_fit(pol_dark, b, frac, blended)
+                    got = polarity_fit(pol_dark, b, frac, blended, skip_mixed)
                     other = got if isinstance(got, dict) else None
             reported = _type_of(x, y, core["bounds"], core["widths"], type_fit["pts_by_sector"], radius, feats,
                                 frame_type, self.s.type_trees, other, probs)
         dark_share = float(core["widths"][core["dark"]].sum() / TWO_PI)
         return _Verified(x, y, reported, radius, score, outline, (D, B), dark_share,
-                         type_probs=probs or None, bounds=core["bounds"], widths=core["widths"])
+                         type_probs=probs or None, bounds=core["bounds"], widths=core["widths"], mixed_fit=skip_mixed)
 
     def _size_ok(self, radius: float) -> bool:
         """Whether an outline's equal-area radius (pixels) is a marker's, with a margin for the fit."""
         return 0.8 * self.s.min_radius_px <= radius <= 1.1 * self.max_radius
 
     def _fit_outline(self, x, y, core, sec, f, inner, pol_dark: bool | None, r0: float,
-                     blended: int | None = None) -> dict | str:
+                     blended: int | None = None, skip_mixed: bool = False) -> dict | str:
         """Boundary points of the sectors of one polarity (``pol_dark`` True: the dark sectors, False:
         the bright ones, None: every sector against its own level) on fine rings (0.25 .. 2.2 r0),
         jumps dropped, and the three outline models fitted to them; a dict, or the reason string.
         ``blended``: a sector of that polarity without a boundary (on a background of its level),
-        for which its opposite sector stands in."""
+        for which its opposite sector stands in. ``skip_mixed``: without the rays that never show
+        their sector's level (see ``ClassicalSettings.mixed_ray_retry``)."""
         D, B, C = core["D"], core["B"], core["C"]
         n_r = 72
         radii = np.linspace(0.25 * r0, 2.2 * r0, n_r)
@@ -1829,6 +1883,14 @@ class _Verifier:
             rays = inner & (dark_ray == pol_dark)
             bnd, _ = self.ray_boundaries(P, radii, 1, pol_dark, D if pol_dark else B, C)
             sectors = np.nonzero(core["dark"] == pol_dark)[0]
+        if skip_mixed:
+            # already past the sector's level on the first ring ray_boundaries looks at (ring 1):
+            # its boundary would be put between rings 0 and 1, at a quarter of r0
+            mixed = np.where(dark_ray, P[1] - D, B - P[1]) > 0.25 * C
+            if not (mixed & rays).any():
+                return NO_MIXED_RAYS  # the fit would be the first one again
+            rays = rays & ~mixed_end_rays(mixed, rays, sec, f, sectors)
+            bnd = np.where(mixed, np.nan, bnd)
         ok = rays & np.isfinite(bnd)
         # along a sector the boundary distance changes smoothly with the angle: a ray far from the
         # running median of its neighbours met something else (background edge, occluder)
@@ -2149,7 +2211,9 @@ def verify_marker_at(gray: np.ndarray, x: float, y: float, radius_px: float,
     Reads only a window of about 2.6 radii around the centre, reduced so the marker spans at most
     about 40 pixels per radius; used by other detectors (e.g. ``hma``) to type their instances.
     """
-    s = settings or ClassicalSettings(min_radius_px=max(2.0, 0.3 * float(radius_px)))
+    # without the second outline fit of ``mixed_ray_retry`` unless the settings ask for it: hma's
+    # instance model and score trees (MODEL_SCORE_FILE) were fitted on the outlines of before
+    s = settings or ClassicalSettings(min_radius_px=max(2.0, 0.3 * float(radius_px)), mixed_ray_retry=False)
     h, w = gray.shape[:2]
     half = int(math.ceil(2.6 * radius_px + 8))
     x0, y0 = max(0, int(x) - half), max(0, int(y) - half)
@@ -2369,7 +2433,8 @@ class _Scan:
     "score" (under the pass's cut; with ``score``), "single saddle", "centre reach", "centre grey",
     "score after refinement" (the refinement failed and the score, cut by 0.7, fell under), "tag grid"
     (``tag_grid_min_each``), "tag lattice" (``tag_lattice``), "edges run on" (``max_edges_running_on``),
-    "held" (``held_score``: added after every pass unless beside a kept marker) or "kept";
+    "mixed-ray fit, centre unsure" (``mixed_ray_max_sigma_px``), "held" (``held_score``: added after
+    every pass unless beside a kept marker) or "kept";
     verified ones also carry ``score``, ``type`` and ``radius_px``, and where ``max_edges_running_on``
     measured them (gray pass) ``edges``, the number of sector edges running on."""
 
@@ -2531,6 +2596,10 @@ class _Scan:
                 v.score *= 0.7
             if dropped(v):
                 mark(ci, "score after refinement", v)
+                continue
+            if v.mixed_fit and sigma > s.mixed_ray_max_sigma_px:
+                mark(ci, MIXED_FIT_UNSURE, v)
+                rejected += 1
                 continue
             if s.tag_grid_min_each is not None and v.type == "square" and is_tag_grid(
                     grid_cells(gray, v.outline, v.x, v.y, v.levels), s.tag_grid_min_each):

@@ -1144,10 +1144,11 @@ class HMADetector:
         from cpdetect.classical import BASE_SCORE_FILE, ClassicalDetector
 
         # the search reduction of before stop 80 (``min_search_radius_px`` None), the score trees of
-        # before stop 83 (over SCORE_FEATURES alone) and no held markers (before stop 84): hma's
-        # settings were chosen with the seeds and vetoes of those (none of the three was tried with hma)
-        return ClassicalDetector(probability_map=with_map, min_search_radius_px=None,
-                                 score_trees=BASE_SCORE_FILE, held_score=None).detect(image, trace=trace)
+        # before stop 83 (over SCORE_FEATURES alone), no held markers (before stop 84) and no second
+        # outline fit without mixed rays (before stop 85): hma's settings were chosen with the seeds
+        # and vetoes of those (none of the four was tried with hma)
+        return ClassicalDetector(probability_map=with_map, min_search_radius_px=None, score_trees=BASE_SCORE_FILE,
+                                 held_score=None, mixed_ray_retry=False).detect(image, trace=trace)
 
     def _refined_centre(self, gray, labels, f, k, bbox, radius, centroid, loose: bool = False,
                         extra: list[tuple[float, float]] = ()) -> "_Centre | None":
