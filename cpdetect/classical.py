@@ -373,8 +373,8 @@ class ClassicalSettings:
         edge of a small blurred marker the two levels mix from the centre out, the ray "departs"
         at once, and its boundary lands at a quarter of the radius (:func:`mixed_end_rays`). Those
         at a sector's ends are left out of the count of rays too, the others count as rays
-        without a boundary. Only such a second fit changes anything: a candidate whose outline
-        fits keeps it.
+        without a boundary. The second fit is the verification's last resort, after both outline
+        type rules: a candidate any first fit verifies keeps it.
     mixed_ray_max_sigma_px: a marker whose outline only that second fit found is kept only where
         its refined centre's uncertainty (sigma_px) is at most this (the centre target's p95, 0.15
         px): on the train-split dev sets 52600-52800 its false markers were small, with sigma
@@ -1271,6 +1271,9 @@ class _Verifier:
         self.cos, self.sin = np.cos(self.theta), np.sin(self.theta)
         # outline type rule of the current verification: "turn" first, "residual" as the fallback
         self.type_rule, self.types_disagreed = "turn", False
+        # the second outline fit of ClassicalSettings.mixed_ray_retry: whether a verification is that
+        # one, and whether the verifications before it reached outlines none of which had a marker's size
+        self.mixed_pass, self.unsized = False, False
         # an outline from the checker lines' extents where the outline model's corners fail
         self.line_frame_fallback = True
         # tests whose measurements the score weighs too (sectors not uniform; on the outer ring:
@@ -1712,14 +1715,28 @@ class _Verifier:
         # rings that leave the image are NaN; all-NaN reductions are expected and handled
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            self.type_rule, self.types_disagreed = "turn", False
-            v = self._verify(x, y, r_start)
-            if isinstance(v, str) and self.types_disagreed and v != EARLY_REASON:
-                # the outline of the other type may be the one that holds (occlusion, strong tilt);
-                # the early score comes before any outline and would say the same again
-                self.type_rule = "residual"
-                v = self._verify(x, y, r_start)
+            self.unsized = False
+            v = self._verify_both_rules(x, y, r_start)
+            if isinstance(v, str) and self.unsized and self.s.mixed_ray_retry:
+                # the last resort, after both type rules: where a first fit holds, it is the one kept
+                self.mixed_pass = True
+                try:
+                    w = self._verify_both_rules(x, y, r_start)
+                finally:
+                    self.mixed_pass = False
+                if not isinstance(w, str):
+                    v = w
             return v
+
+    def _verify_both_rules(self, x: float, y: float, r_start: float) -> _Verified | str:
+        self.type_rule, self.types_disagreed = "turn", False
+        v = self._verify(x, y, r_start)
+        if isinstance(v, str) and self.types_disagreed and v != EARLY_REASON:
+            # the outline of the other type may be the one that holds (occlusion, strong tilt);
+            # the early score comes before any outline and would say the same again
+            self.type_rule = "residual"
+            v = self._verify(x, y, r_start)
+        return v
 
     def _verify(self, x: float, y: float, r_start: float) -> _Verified | str:
         self.last_core_radius = None
@@ -1786,14 +1803,10 @@ class _Verifier:
                                                                          skip_mixed), x, y, core, core_r))
             return fits
 
-        def any_sized(fits: list) -> bool:
-            return any(isinstance(t, dict) and self._size_ok(t["radius"]) for t in fits)
-
-        fits, skip_mixed = outline_fits(False), False
-        if self.s.mixed_ray_retry and not any_sized(fits):
-            again = outline_fits(True)
-            if any_sized(again):
-                fits, skip_mixed = again, True
+        skip_mixed = self.mixed_pass
+        fits = outline_fits(skip_mixed)
+        if not skip_mixed and not any(isinstance(t, dict) and self._size_ok(t["radius"]) for t in fits):
+            self.unsized = True
         good = [t for t in fits if isinstance(t, dict)]
         if not good:
             return fits[0]
