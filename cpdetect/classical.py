@@ -1274,6 +1274,7 @@ class _Verifier:
         # the second outline fit of ClassicalSettings.mixed_ray_retry: whether a verification is that
         # one, and whether the verifications before it reached outlines none of which had a marker's size
         self.mixed_pass, self.unsized = False, False
+        self.core_kept: tuple = (None, None)  # ((x, y, r_start), core) of the last verification
         # an outline from the checker lines' extents where the outline model's corners fail
         self.line_frame_fallback = True
         # tests whose measurements the score weighs too (sectors not uniform; on the outer ring:
@@ -1740,7 +1741,10 @@ class _Verifier:
 
     def _verify(self, x: float, y: float, r_start: float) -> _Verified | str:
         self.last_core_radius = None
-        core = self.core(x, y, r_start)
+        key = (x, y, r_start)
+        # the second fit of mixed_ray_retry starts from the same core as the verification before it
+        core = self.core_kept[1] if self.mixed_pass and self.core_kept[0] == key else self.core(x, y, r_start)
+        self.core_kept = (key, core)
         if isinstance(core, str):
             return core
         self.last_core_radius = float(core["radii"][core["core_end"]])
