@@ -374,7 +374,13 @@ class ClassicalSettings:
         at once, and its boundary lands at a quarter of the radius (:func:`mixed_end_rays`). Those
         at a sector's ends are left out of the count of rays too, the others count as rays
         without a boundary. The second fit is the verification's last resort, after both outline
-        type rules: a candidate any first fit verifies keeps it.
+        type rules: a candidate any first fit verifies keeps it. Off by default: rule 54 (stop 85,
+        written before its sets existed; at least +4 markers and at most +1 false pooled, time at
+        640 x 480 at most +5 %) gave +7 markers (3,900 -> 3,907) and +1 false (14 -> 15) over fresh
+        640 x 480 53900 / 54000 / 54100, 1920 x 1080 54200 and 45 MP 54300, types and centres as
+        before, but +7.1 % time per image at 640 x 480 (a second verification for 15 % of them):
+        failed on time. Rule 53 (the second fit inside each type rule) lost markers whose first
+        fit held under the other rule: 4,056 -> 4,055 over 53400-53800.
     mixed_ray_max_sigma_px: a marker whose outline only that second fit found is kept only where
         its refined centre's uncertainty (sigma_px) is at most this (the centre target's p95, 0.15
         px): on the train-split dev sets 52600-52800 its false markers were small, with sigma
