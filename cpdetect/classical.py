@@ -1787,6 +1787,7 @@ class _Verifier:
         if self.early_cut > 0.0 and early_score(self.last_early()) < self.early_cut:
             return EARLY_REASON
         rough.sort(key=lambda t: -t[0])
+
         def polarity_fit(pol_dark, b, frac, blended, skip_mixed) -> dict | str:
             if frac < 0.75:
                 return "marker boundary not found"
