@@ -148,6 +148,9 @@ _CAND_B = -3.4394
 # 0.2 instead of 0.0178 (which kept 99.5 % of the candidates on markers) lost 6 markers (0.2 %) and
 # 15 of 71 false ones, and verified a quarter as many candidates (time per image -50 to -60 %)
 CANDIDATE_SCORE_CUT = 0.2
+# a ray departs from its sector where it differs from the sector's level by more than this share of
+# the contrast (ClassicalSettings.mixed_ray_retry's mixed rays are those past it from the first ring)
+DEPART_FRAC = 0.25
 # _fit_outline's reason where a fit without mixed rays (ClassicalSettings.mixed_ray_retry) has none to leave out
 NO_MIXED_RAYS = "no mixed rays"
 # the scan's stage for a marker whose outline only the fit without mixed rays found and whose centre is unsure
@@ -1679,7 +1682,7 @@ class _Verifier:
         sgn = 1.0 if polarity_dark else -1.0
         dev = sgn * (P - level)
         nr, nt = P.shape
-        beyond = dev > 0.25 * C
+        beyond = dev > DEPART_FRAC * C
         beyond[:start] = False
         has = beyond.any(0)
         first = np.argmax(beyond, 0)
@@ -1750,7 +1753,8 @@ class _Verifier:
         key = (x, y, r_start)
         # the second fit of mixed_ray_retry starts from the same core as the verification before it
         core = self.core_kept[1] if self.mixed_pass and self.core_kept[0] == key else self.core(x, y, r_start)
-        self.core_kept = (key, core)
+        if self.s.mixed_ray_retry:
+            self.core_kept = (key, core)
         if isinstance(core, str):
             return core
         self.last_core_radius = float(core["radii"][core["core_end"]])
@@ -1816,7 +1820,8 @@ class _Verifier:
 
         skip_mixed = self.mixed_pass
         fits = outline_fits(skip_mixed)
-        if not skip_mixed and not any(isinstance(t, dict) and self._size_ok(t["radius"]) for t in fits):
+        if self.s.mixed_ray_retry and not skip_mixed and not any(
+                isinstance(t, dict) and self._size_ok(t["radius"]) for t in fits):
             self.unsized = True
         good = [t for t in fits if isinstance(t, dict)]
         if not good:
@@ -1910,7 +1915,7 @@ class _Verifier:
         if skip_mixed:
             # already past the sector's level on the first ring ray_boundaries looks at (ring 1):
             # its boundary would be put between rings 0 and 1, at a quarter of r0
-            mixed = np.where(dark_ray, P[1] - D, B - P[1]) > 0.25 * C
+            mixed = np.where(dark_ray, P[1] - D, B - P[1]) > DEPART_FRAC * C
             if not (mixed & rays).any():
                 return NO_MIXED_RAYS  # the fit would be the first one again
             rays = rays & ~mixed_end_rays(mixed, rays, sec, f, sectors)
